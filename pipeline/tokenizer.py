@@ -1,0 +1,61 @@
+"""A word-level tokenizer built for Gridworld text (the CPU-default model's vocabulary).
+
+Pieces are numbers, words and punctuation, each optionally with one leading space, plus single whitespace
+characters; decoding concatenates them, so ``decode(encode(text)) == text`` for any text in the vocabulary.
+The vocabulary is the sorted set of pieces of the training texts plus every coordinate the frame can
+produce (``-1`` .. ``frame``), so extrapolated test worlds never meet an unknown number.
+"""
+
+from __future__ import annotations
+
+from typing import Iterable
+
+from tokenizers import Regex, Tokenizer, decoders, models, pre_tokenizers
+from transformers import PreTrainedTokenizerFast
+
+from pipeline.chat import WORD_LEVEL_FORMAT
+
+PIECE_PATTERN = r" ?-?\d+| ?[A-Za-z']+|\n| ?[^\sA-Za-z\d]|\s"
+UNK, PAD = "<unk>", "<pad>"
+SPECIAL_TOKENS = (PAD, UNK, WORD_LEVEL_FORMAT.bos, WORD_LEVEL_FORMAT.turn_end,
+                  WORD_LEVEL_FORMAT.human_prefix, WORD_LEVEL_FORMAT.gpt_prefix)
+
+
+def _pre_tokenizer() -> pre_tokenizers.PreTokenizer:
+    return pre_tokenizers.Split(Regex(PIECE_PATTERN), behavior="isolated")
+
+
+def pieces(text: str) -> list[str]:
+    """The pieces a text splits into (each becomes one token)."""
+    return [piece for piece, _ in _pre_tokenizer().pre_tokenize_str(text)]
+
+
+def coverage_text(frame: int) -> str:
+    """Every number a coordinate can take in a frame, with and without a leading space."""
+    numbers = range(-1, frame + 1)
+    return " ".join(str(n) for n in numbers) + " " + ",".join(str(n) for n in numbers)
+
+
+def build_word_tokenizer(texts: Iterable[str], frame: int = 20) -> PreTrainedTokenizerFast:
+    """A deterministic word-level tokenizer whose vocabulary covers ``texts`` and all frame coordinates."""
+    vocab_pieces: set[str] = set()
+    splitter = _pre_tokenizer()
+    for text in [coverage_text(frame), *texts]:
+        vocab_pieces.update(piece for piece, _ in splitter.pre_tokenize_str(text))
+    vocab = {token: i for i, token in enumerate(SPECIAL_TOKENS)}
+    for piece in sorted(vocab_pieces - set(SPECIAL_TOKENS)):
+        vocab[piece] = len(vocab)
+    core = Tokenizer(models.WordLevel(vocab=vocab, unk_token=UNK))
+    core.pre_tokenizer = splitter
+    core.decoder = decoders.Fuse()
+    core.add_special_tokens(list(SPECIAL_TOKENS))
+    return PreTrainedTokenizerFast(
+        tokenizer_object=core,
+        bos_token=WORD_LEVEL_FORMAT.bos,
+        eos_token=WORD_LEVEL_FORMAT.turn_end,
+        pad_token=PAD,
+        unk_token=UNK,
+        additional_special_tokens=[WORD_LEVEL_FORMAT.human_prefix, WORD_LEVEL_FORMAT.gpt_prefix],
+        clean_up_tokenization_spaces=False,
+    )
+
