@@ -1,0 +1,260 @@
+"""The texts of a world: task prompt, observations, cognitive maps and answers, conversations (SPEC 2-3)."""
+
+from __future__ import annotations
+
+import random
+from functools import lru_cache
+from typing import Literal, NamedTuple, get_args
+
+from pipeline.world import MOVES, Cell, World, move_between, step
+
+Direction = Literal["fwd", "bwd"]
+Mode = Literal["optimal", "reachable"]
+Baseline = Literal["none", "cot", "dfs"]
+
+DIRECTIONS: tuple[str, ...] = get_args(Direction)
+MODES: tuple[str, ...] = get_args(Mode)
+BASELINES: tuple[str, ...] = get_args(Baseline)
+
+
+class MapSwitches(NamedTuple):
+    """The three switches a cognitive-map variant is made of (SPEC 3 table)."""
+
+    all_moves: bool
+    marking: bool
+    backtrack: bool
+
+
+# The variant table, in the paper's row order. `marking` is meaningless without all-moves: off there.
+MAP_VARIANTS: dict[str, MapSwitches] = {
+    "marking-deadend": MapSwitches(all_moves=True, marking=True, backtrack=True),
+    "no-marking": MapSwitches(all_moves=True, marking=False, backtrack=True),
+    "no-backtrack": MapSwitches(all_moves=True, marking=True, backtrack=False),
+    "no-marking-no-backtrack": MapSwitches(all_moves=True, marking=False, backtrack=False),
+    "no-all": MapSwitches(all_moves=False, marking=False, backtrack=True),
+    "no-all-no-backtrack": MapSwitches(all_moves=False, marking=False, backtrack=False),
+}
+VARIANTS: tuple[str, ...] = tuple(MAP_VARIANTS) + BASELINES
+
+INSTRUCTION = (
+    "You are given a rectangular gridworld, where you can move up, down, left, or right as long as each of "
+    "your x, y coordinates are within 0 to the x, y size of the grid. If you move up, your y coordinate "
+    "increases by 1. If you move down, your y coordinate decreases by 1. If you move left, your x coordinate "
+    "decreases by 1. If you move right, your x coordinate increases by 1.\n\nYou will interact with the "
+    "gridworld environment to reach the goal state, while avoiding the pit and the wall. You cannot move "
+    "through the wall or move outside the grid. If you fall into the pit, you lose. If you reach the goal, "
+    "you win. For each of your turn, you will be given the possible moves.\n\nYou should respond your move "
+    "with either one of 'up', 'down', 'left', or 'right'."
+)
+ACKNOWLEDGEMENT = "OK"
+
+# BWD labels a neighbour by the move from it back to the state: the opposite move.
+_OPPOSITE = {"up": "down", "down": "up", "left": "right", "right": "left"}
+_LABELS: dict[str, tuple[str, ...]] = {
+    "fwd": tuple(MOVES),
+    "bwd": tuple(_OPPOSITE[m] for m in MOVES),
+}
+
+
+def check_choice(name: str, value: object, allowed: tuple[str, ...]) -> None:
+    """Raise ValueError naming `value` and the allowed ones unless `value` is one of them."""
+    if value not in allowed:
+        raise ValueError(f"unknown {name} {value!r}; allowed: {', '.join(allowed)}")
+
+
+@lru_cache(maxsize=4096)
+def cell_text(cell: Cell) -> str:
+    """`(x, y)` as every text writes a cell."""
+    return f"({cell[0]}, {cell[1]})"
+
+
+def _listing(kind: str, cells: tuple[Cell, ...]) -> str:
+    if not cells:
+        return f"There is no {kind}."
+    texts = [cell_text(c) for c in cells]
+    if len(texts) == 1:
+        return f"The {kind} is at {texts[0]}."
+    return f"The {kind} is at {', '.join(texts[:-1])}, and {texts[-1]}."
+
+
+def task_text(world: World) -> str:
+    """The task part of the third human turn (SPEC 2.3), ending in a newline; the observation follows."""
+    return (
+        f"Grid is from {cell_text((world.x0, world.y0))} to {cell_text((world.x1, world.y1))}. "
+        f"Goal: {cell_text(world.goal)}\n"
+        f"Current: {cell_text(world.start)}\n"
+        f"{_listing('pit', world.pits)} {_listing('wall', world.walls)}\n"
+    )
+
+
+def observation(world: World, cell: Cell) -> str:
+    """What the agent sees at `cell`: its position and the free neighbours, in the MOVES order (SPEC 2.4)."""
+    lines = ["Current:", cell_text(cell), "Possible:"]
+    for move in MOVES:
+        target = step(cell, move)
+        if world.is_free(target):
+            lines += (cell_text(target), move)
+    return "\n".join(lines)
+
+
+def first_human_text(world: World) -> str:
+    """The full third turn: task text then the observation at the start."""
+    return task_text(world) + observation(world, world.start)
+
+
+def prompt_turns(world: World) -> list[dict[str, str]]:
+    """The first three turns: what a model is prompted with."""
+    return [
+        {"from": "human", "value": INSTRUCTION},
+        {"from": "gpt", "value": ACKNOWLEDGEMENT},
+        {"from": "human", "value": first_human_text(world)},
+    ]
+
+
+def cognitive_map(
+    world: World, direction: str, *, all_moves: bool, marking: bool, backtrack: bool
+) -> list[str]:
+    """The Thought section of a map variant, `Thought:` first: BFS steps, then Backtrack if switched on.
+
+    BFS runs level by level from the start (fwd) or the goal (bwd) until the other end is visited;
+    a neighbour is new if free and not visited before this step (SPEC 3).
+    """
+    check_choice("direction", direction, DIRECTIONS)
+    root, target = (world.start, world.goal) if direction == "fwd" else (world.goal, world.start)
+    blocked, offsets, labels = world.padded, world.offsets(), _LABELS[direction]
+    moves = tuple(zip(offsets, labels))
+    names = _padded_names(world)
+    visited = bytearray(len(blocked))
+    queued = bytearray(len(blocked))
+    root_i, target_i = world.index(root), world.index(target)
+    visited[root_i] = 1
+    frontier = [root_i]
+    lines = ["Thought:"]
+    level = 0
+    while not visited[target_i]:
+        level += 1
+        lines.append(f"Step {level}:")
+        following = []
+        for state in frontier:
+            for offset, label in moves:
+                j = state + offset
+                if not blocked[j] and not visited[j]:
+                    lines += (names[j], label)
+                    if not queued[j]:
+                        queued[j] = 1
+                        following.append(j)
+                elif all_moves:
+                    lines += (names[j], "cut" if marking else label)
+        for j in following:
+            visited[j] = 1
+        frontier = following
+    if backtrack:
+        lines += backtrack_lines(world, direction)
+    return lines
+
+
+def _padded_names(world: World) -> list[str]:
+    """`cell_text` of every cell of the padded grid, by `World.index` (the map prints border cells too)."""
+    return [
+        cell_text((x, y))
+        for x in range(world.x0 - 1, world.x1 + 2)
+        for y in range(world.y0 - 1, world.y1 + 2)
+    ]
+
+
+def backtrack_lines(world: World, direction: str) -> list[str]:
+    """`Backtrack:` then the path as cell/move lines: goal to start for fwd, start to goal for bwd."""
+    check_choice("direction", direction, DIRECTIONS)
+    path, moves = world.shortest_path(), world.optimal_moves()
+    cells = [cell_text(c) for c in path]
+    lines = ["Backtrack:"]
+    if direction == "fwd":
+        for k in range(len(moves), 0, -1):
+            lines += (cells[k], moves[k - 1])
+        lines.append(cells[0])
+    else:
+        for k, move in enumerate(moves):
+            lines += (cells[k], move)
+        lines.append(cells[-1])
+    return lines
+
+
+def cot_thought(world: World, direction: str) -> list[str]:
+    """The CoT baseline's Thought: empty `Step k:` headers, one per optimal move, then Backtrack."""
+    steps = [f"Step {k}:" for k in range(1, len(world.shortest_path()))]
+    return ["Thought:", *steps, *backtrack_lines(world, direction)]
+
+
+def thought_lines(world: World, direction: str, variant: str) -> list[str]:
+    """The Thought section (with Backtrack) of any variant; empty for `none` and `dfs`."""
+    check_choice("variant", variant, VARIANTS)
+    if variant in MAP_VARIANTS:
+        return cognitive_map(world, direction, **MAP_VARIANTS[variant]._asdict())
+    if variant == "cot":
+        return cot_thought(world, direction)
+    check_choice("direction", direction, DIRECTIONS)
+    return []
+
+
+def dfs_moves(world: World, seed: int = 0) -> list[str]:
+    """A randomized depth-first walk from start to goal (the `dfs` baseline), the same for the same seed.
+
+    At each cell: go to a random free neighbour not visited yet; with none left, step back towards the
+    start along the walk's own tree.
+    """
+    rng = random.Random(seed)
+    parent: dict[Cell, Cell] = {}
+    visited = {world.start}
+    cell = world.start
+    moves = []
+    while cell != world.goal:
+        targets = ((m, step(cell, m)) for m in MOVES)
+        fresh = [(m, t) for m, t in targets if world.is_free(t) and t not in visited]
+        if fresh:
+            move, nxt = rng.choice(fresh)
+            parent[nxt] = cell
+            visited.add(nxt)
+        else:
+            nxt = parent[cell]
+            move = move_between(cell, nxt)
+        moves.append(move)
+        cell = nxt
+    return moves
+
+
+def _moves(world: World, variant: str, seed: int) -> list[str]:
+    return dfs_moves(world, seed) if variant == "dfs" else world.optimal_moves()
+
+
+def _check(direction: str, variant: str, mode: str) -> None:
+    check_choice("direction", direction, DIRECTIONS)
+    check_choice("variant", variant, VARIANTS)
+    check_choice("mode", mode, MODES)
+    if variant == "dfs" and mode != "reachable":
+        raise ValueError(f"variant 'dfs' is reachable-only; allowed modes for it: reachable, got {mode!r}")
+
+
+def answer(world: World, direction: str, variant: str, mode: str, seed: int = 0) -> str:
+    """The first gpt answer: the Thought section, then `Plan:` and all moves, or `Action:` and the first."""
+    _check(direction, variant, mode)
+    return _answer(world, direction, variant, mode, _moves(world, variant, seed))
+
+
+def _answer(world: World, direction: str, variant: str, mode: str, moves: list[str]) -> str:
+    tail = ["Plan:", *moves] if mode == "optimal" else ["Action:", moves[0]]
+    return "\n".join(thought_lines(world, direction, variant) + tail)
+
+
+def conversation(world: World, direction: str, variant: str, mode: str, seed: int = 0) -> list[dict[str, str]]:
+    """The whole training conversation (SPEC 2): prompt, first answer and, when reachable, the walk."""
+    _check(direction, variant, mode)
+    moves = _moves(world, variant, seed)
+    turns = prompt_turns(world)
+    turns.append({"from": "gpt", "value": _answer(world, direction, variant, mode, moves)})
+    if mode == "reachable":
+        cell = step(world.start, moves[0])
+        for move in moves[1:]:
+            turns.append({"from": "human", "value": observation(world, cell)})
+            turns.append({"from": "gpt", "value": move})
+            cell = step(cell, move)
+    return turns
