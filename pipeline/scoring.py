@@ -1,0 +1,137 @@
+"""Parsing model answers and grading optimal-setting plans (SPEC 4). Nothing here raises on model text."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+from pipeline.texts import MAP_VARIANTS, answer, thought_lines
+from pipeline.world import MOVES, World, step
+
+_HEADERS = ("Thought:", "Backtrack:", "Plan:", "Action:")
+
+
+@dataclass
+class ParsedAnswer:
+    """The sections of an answer; a section that is absent is None (an empty one is [])."""
+
+    thought: list[str] | None = None
+    backtrack: list[str] | None = None
+    plan: list[str] | None = None
+    action: str | None = None
+
+
+def _as_text(text: object) -> str:
+    """Whatever a decoder handed back, as a str (None and bytes included)."""
+    if text is None:
+        return ""
+    if isinstance(text, bytes):
+        return text.decode("utf-8", errors="replace")
+    return text if isinstance(text, str) else str(text)
+
+
+def parse_answer(text: object) -> ParsedAnswer:
+    """Split an answer into Thought (map lines), Backtrack, Plan (raw lines) and Action (one line).
+
+    Section headers are whole lines (surrounding whitespace ignored); a section runs to the next header.
+    The first occurrence of a header wins, so a rambling model cannot overwrite an earlier section.
+    """
+    sections: dict[str, list[str]] = {}
+    current: list[str] | None = None
+    for line in _as_text(text).split("\n"):
+        header = line.strip()
+        if header in _HEADERS:
+            current = None if header in sections else sections.setdefault(header, [])
+        elif current is not None:
+            current.append(line)
+    action_lines = sections.get("Action:")
+    return ParsedAnswer(
+        thought=sections.get("Thought:"),
+        backtrack=sections.get("Backtrack:"),
+        plan=sections.get("Plan:"),
+        action=action_lines[0].strip() if action_lines else None,
+    )
+
+
+def parse_action(text: object) -> str | None:
+    """The move of a reachable answer: the line after `Action:`, else the bare text; None if not a move."""
+    text = _as_text(text)
+    action = parse_answer(text).action
+    candidate = action if action is not None else text.strip()
+    return candidate if candidate in MOVES else None
+
+
+@dataclass
+class PlanScore:
+    """Graded result of one optimal-setting answer (searchformer-style: parsed, valid, reaches, optimal)."""
+
+    parsed: bool
+    valid: bool
+    reaches_goal: bool
+    optimal: bool
+    map_exact: bool | None
+    map_first_error: int | None
+    plan_length: int | None
+    optimal_length: int
+
+    def to_dict(self) -> dict:
+        """Plain dict for a table row."""
+        return asdict(self)
+
+
+def plan_moves(parsed: ParsedAnswer) -> list[str] | None:
+    """The Plan section as moves (blank lines ignored), or None if absent or not all moves."""
+    if parsed.plan is None:
+        return None
+    moves = [line.strip() for line in parsed.plan if line.strip()]
+    return moves if moves and all(m in MOVES for m in moves) else None
+
+
+def _walk(world: World, moves: list[str]) -> tuple[bool, bool]:
+    """(valid, reaches_goal): valid if no move leaves the grid or enters an obstacle."""
+    cell = world.start
+    for move in moves:
+        cell = step(cell, move)
+        if not world.is_free(cell):
+            return False, False
+    return True, cell == world.goal
+
+
+def first_difference(produced: list[str], golden: list[str]) -> int | None:
+    """Index of the first line where `produced` departs from `golden` (a length mismatch counts), or None."""
+    for i, (a, b) in enumerate(zip(produced, golden)):
+        if a != b:
+            return i
+    return None if len(produced) == len(golden) else min(len(produced), len(golden))
+
+
+def score_optimal(world: World, text: object, direction: str, variant: str) -> PlanScore:
+    """Grade an optimal-setting answer against the world's unique shortest path and golden answer.
+
+    `direction` and `variant` are checked (ValueError names the allowed ones); the text never raises.
+    """
+    golden = answer(world, direction, variant, "optimal")
+    parsed = parse_answer(text)
+    moves = plan_moves(parsed)
+    valid, reaches = _walk(world, moves) if moves is not None else (False, False)
+    optimal_moves = world.optimal_moves()
+    map_exact = None
+    if variant in MAP_VARIANTS:
+        # thought_lines includes the "Thought:" header, which the parser strips.
+        map_exact = parsed.thought is not None and _thought_of(world, direction, variant) == parsed.thought
+    return PlanScore(
+        parsed=moves is not None,
+        valid=valid,
+        reaches_goal=reaches,
+        optimal=moves == optimal_moves,
+        map_exact=map_exact,
+        map_first_error=first_difference(_as_text(text).split("\n"), golden.split("\n")),
+        plan_length=len(moves) if moves is not None else None,
+        optimal_length=len(optimal_moves),
+    )
+
+
+def _thought_of(world: World, direction: str, variant: str) -> list[str]:
+    """The golden Thought section as the parser returns it: map lines up to Backtrack, no header."""
+    lines = thought_lines(world, direction, variant)[1:]
+    return lines[: lines.index("Backtrack:")] if "Backtrack:" in lines else lines
+

@@ -1,0 +1,78 @@
+"""Shared fixtures and hypothesis strategies for the domain-core tests."""
+
+from __future__ import annotations
+
+import random
+from pathlib import Path
+
+import pytest
+from hypothesis import HealthCheck, settings
+from hypothesis import strategies as st
+
+from pipeline.generate import GeneratorConfig, sample_world
+from pipeline.world import World, load_worlds
+
+PAPER_TEST = Path("/work/shared/data/paper_test_3000.jsonl")
+
+# World generation dominates example time; no deadline so a slow CI box does not flake.
+settings.register_profile("core", max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+settings.load_profile("core")
+
+
+def worlds(max_size: int = 9) -> st.SearchStrategy[World]:
+    """Generated worlds of sides 2..max_size, drawn through the real generator from a random seed."""
+    cfg = GeneratorConfig(size_x=(2, max_size), size_y=(2, max_size))
+    return st.integers(0, 2**32).map(lambda seed: sample_world(random.Random(seed), cfg))
+
+
+@pytest.fixture
+def example_world() -> World:
+    """The paper's worked example (SPEC 2): grid (0, 0)-(3, 2), pit (3, 0), walls (1, 1), (2, 2)."""
+    return World(
+        size_x=4,
+        size_y=3,
+        x0=0,
+        y0=0,
+        walls=((1, 1), (2, 2)),
+        pits=((3, 0),),
+        start=(0, 0),
+        goal=(3, 2),
+    )
+
+
+@pytest.fixture(scope="session")
+def paper_worlds() -> list[World]:
+    """The paper's released test set, loaded once per session."""
+    if not PAPER_TEST.exists():
+        pytest.skip(f"{PAPER_TEST} is not available")
+    return load_worlds(PAPER_TEST)
+
+
+# SPEC 2-3 golden strings for the worked example, character for character.
+GOLDEN_TURN_3 = (
+    "Grid is from (0, 0) to (3, 2). Goal: (3, 2)\nCurrent: (0, 0)\nThe pit is at (3, 0). The wall is at (1, 1), "
+    "and (2, 2).\nCurrent:\n(0, 0)\nPossible:\n(0, 1)\nup\n(1, 0)\nright"
+)
+GOLDEN_FWD_MARKING_DEADEND = (
+    "Thought:\nStep 1:\n(0, 1)\nup\n(0, -1)\ncut\n(-1, 0)\ncut\n(1, 0)\nright\nStep 2:\n(0, 2)\nup\n(0, 0)\ncut\n"
+    "(-1, 1)\ncut\n(1, 1)\ncut\n(1, 1)\ncut\n(1, -1)\ncut\n(0, 0)\ncut\n(2, 0)\nright\nStep 3:\n(0, 3)\ncut\n"
+    "(0, 1)\ncut\n(-1, 2)\ncut\n(1, 2)\nright\n(2, 1)\nup\n(2, -1)\ncut\n(1, 0)\ncut\n(3, 0)\ncut\nStep 4:\n"
+    "(1, 3)\ncut\n(1, 1)\ncut\n(0, 2)\ncut\n(2, 2)\ncut\n(2, 2)\ncut\n(2, 0)\ncut\n(1, 1)\ncut\n(3, 1)\nright\n"
+    "Step 5:\n(3, 2)\nup\n(3, 0)\ncut\n(2, 1)\ncut\n(4, 1)\ncut\nBacktrack:\n(3, 2)\nup\n(3, 1)\nright\n(2, 1)\n"
+    "up\n(2, 0)\nright\n(1, 0)\nright\n(0, 0)\nPlan:\nright\nright\nup\nright\nup"
+)
+GOLDEN_BWD_NO_ALL = (
+    "Thought:\nStep 1:\n(3, 1)\nup\nStep 2:\n(2, 1)\nright\nStep 3:\n(2, 0)\nup\nStep 4:\n(1, 0)\nright\n"
+    "Step 5:\n(0, 0)\nright\nBacktrack:\n(0, 0)\nright\n(1, 0)\nright\n(2, 0)\nup\n(2, 1)\nright\n(3, 1)\nup\n"
+    "(3, 2)\nPlan:\nright\nright\nup\nright\nup"
+)
+
+
+@pytest.fixture
+def golden() -> dict[str, str]:
+    """The worked example's golden texts by name."""
+    return {
+        "turn_3": GOLDEN_TURN_3,
+        "fwd_marking_deadend": GOLDEN_FWD_MARKING_DEADEND,
+        "bwd_no_all": GOLDEN_BWD_NO_ALL,
+    }
