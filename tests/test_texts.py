@@ -1,0 +1,182 @@
+"""Texts: SPEC golden strings, list formats, the variant switches, conversations and the DFS baseline."""
+
+from __future__ import annotations
+
+import pytest
+from conftest import worlds
+from hypothesis import given
+
+from pipeline import World, conversation
+from pipeline.texts import (
+    BASELINES,
+    DIRECTIONS,
+    INSTRUCTION,
+    MAP_VARIANTS,
+    MODES,
+    VARIANTS,
+    answer,
+    backtrack_lines,
+    cognitive_map,
+    cot_thought,
+    dfs_moves,
+    observation,
+    prompt_turns,
+    task_text,
+)
+from pipeline.world import step
+
+
+def _world(walls=(), pits=(), size=(3, 3)) -> World:
+    return World(size[0], size[1], 0, 0, tuple(walls), tuple(pits), (0, 0), (size[0] - 1, size[1] - 1))
+
+
+def test_constants():
+    assert DIRECTIONS == ("fwd", "bwd")
+    assert MODES == ("optimal", "reachable")
+    assert BASELINES == ("none", "cot", "dfs")
+    assert VARIANTS == (
+        "marking-deadend",
+        "no-marking",
+        "no-backtrack",
+        "no-marking-no-backtrack",
+        "no-all",
+        "no-all-no-backtrack",
+        "none",
+        "cot",
+        "dfs",
+    )
+    assert MAP_VARIANTS["marking-deadend"] == (True, True, True)
+    assert MAP_VARIANTS["no-all"] == (False, False, True)
+    assert INSTRUCTION.startswith("You are given a rectangular gridworld, where you can move up, down,")
+    assert INSTRUCTION.endswith("with either one of 'up', 'down', 'left', or 'right'.")
+    assert INSTRUCTION.count("\n\n") == 2
+
+
+def test_golden_turn_3(example_world, golden):
+    assert task_text(example_world) + observation(example_world, example_world.start) == golden["turn_3"]
+    assert prompt_turns(example_world) == [
+        {"from": "human", "value": INSTRUCTION},
+        {"from": "gpt", "value": "OK"},
+        {"from": "human", "value": golden["turn_3"]},
+    ]
+
+
+def test_golden_fwd_marking_deadend(example_world, golden):
+    assert answer(example_world, "fwd", "marking-deadend", "optimal") == golden["fwd_marking_deadend"]
+
+
+def test_golden_bwd_no_all(example_world, golden):
+    assert answer(example_world, "bwd", "no-all", "optimal") == golden["bwd_no_all"]
+
+
+def test_cognitive_map_is_the_answer_without_plan(example_world, golden):
+    lines = cognitive_map(example_world, "fwd", all_moves=True, marking=True, backtrack=True)
+    assert "\n".join(lines) + "\nPlan:\nright\nright\nup\nright\nup" == golden["fwd_marking_deadend"]
+
+
+@pytest.mark.parametrize(
+    ("world", "expected"),
+    [
+        (World(2, 2, 0, 0, (), (), (0, 0), (1, 0)), "There is no pit. There is no wall.\n"),
+        (_world(walls=[(1, 1)], pits=[(2, 0)]), "The pit is at (2, 0). The wall is at (1, 1).\n"),
+        (_world(walls=[(1, 1), (0, 2)]), "There is no pit. The wall is at (1, 1), and (0, 2).\n"),
+        (
+            _world(walls=[(0, 1), (2, 1), (1, 1)], size=(4, 2)),
+            "There is no pit. The wall is at (0, 1), (2, 1), and (1, 1).\n",
+        ),
+    ],
+)
+def test_obstacle_listings(world, expected):
+    assert task_text(world).endswith(expected)
+
+
+def test_observation_order_and_blocked_moves(example_world):
+    assert observation(example_world, (2, 1)) == "Current:\n(2, 1)\nPossible:\n(2, 0)\ndown\n(3, 1)\nright"
+    assert observation(example_world, (0, 1)) == "Current:\n(0, 1)\nPossible:\n(0, 2)\nup\n(0, 0)\ndown"
+
+
+def test_variants_differ_only_by_switches(example_world):
+    fwd_no_marking = answer(example_world, "fwd", "no-marking", "optimal")
+    assert "cut" not in fwd_no_marking
+    # Marking only relabels: same number of lines, same cells.
+    marked = answer(example_world, "fwd", "marking-deadend", "optimal").split("\n")
+    assert len(marked) == len(fwd_no_marking.split("\n"))
+    assert answer(example_world, "fwd", "no-backtrack", "optimal") == answer(
+        example_world, "fwd", "marking-deadend", "optimal"
+    ).replace("\n".join([""] + backtrack_lines(example_world, "fwd")), "")
+    no_all = answer(example_world, "fwd", "no-all", "optimal")
+    assert "cut" not in no_all and "(-1, 0)" not in no_all
+
+
+def test_bwd_labels_are_moves_towards_the_state(example_world):
+    lines = cognitive_map(example_world, "bwd", all_moves=True, marking=False, backtrack=False)
+    # Step 1 from the goal (3, 2): neighbours (3, 3), (3, 1), (2, 2), (4, 2) labelled down, up, right, left.
+    assert lines[:10] == ["Thought:", "Step 1:", "(3, 3)", "down", "(3, 1)", "up", "(2, 2)", "right", "(4, 2)", "left"]
+
+
+def test_cot_and_none(example_world):
+    assert cot_thought(example_world, "bwd")[:7] == ["Thought:", "Step 1:", "Step 2:", "Step 3:", "Step 4:", "Step 5:", "Backtrack:"]
+    assert answer(example_world, "fwd", "none", "optimal") == "Plan:\nright\nright\nup\nright\nup"
+    assert answer(example_world, "bwd", "none", "reachable") == "Action:\nright"
+    assert conversation(example_world, "fwd", "none", "reachable") == conversation(
+        example_world, "bwd", "none", "reachable"
+    )
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (("up", "marking-deadend", "optimal"), "unknown direction 'up'; allowed: fwd, bwd"),
+        (("fwd", "marking", "optimal"), "unknown variant 'marking'; allowed: marking-deadend, no-marking"),
+        (("fwd", "none", "multi"), "unknown mode 'multi'; allowed: optimal, reachable"),
+        (("fwd", "dfs", "optimal"), "'dfs' is reachable-only"),
+    ],
+)
+def test_unknown_names(example_world, args, message):
+    with pytest.raises(ValueError, match=message):
+        answer(example_world, *args)
+    with pytest.raises(ValueError, match=message):
+        conversation(example_world, *args)
+
+
+def test_reachable_conversation_shape(example_world):
+    turns = conversation(example_world, "bwd", "marking-deadend", "reachable")
+    assert [t["from"] for t in turns] == ["human", "gpt"] * (len(turns) // 2)
+    assert turns[3]["value"].endswith("\nAction:\nright")
+    assert [t["value"] for t in turns[5::2]] == ["right", "up", "right", "up"]
+    assert turns[4]["value"] == observation(example_world, (1, 0))
+    assert len(conversation(example_world, "bwd", "marking-deadend", "optimal")) == 4
+
+
+def test_dfs_is_seeded_and_walks_to_the_goal(example_world):
+    walks = {tuple(dfs_moves(example_world, seed)) for seed in range(30)}
+    assert len(walks) > 1  # the start has two ways out: the seed matters
+    assert dfs_moves(example_world, 4) == dfs_moves(example_world, 4)
+    assert conversation(example_world, "fwd", "dfs", "reachable", seed=4) == conversation(
+        example_world, "fwd", "dfs", "reachable", seed=4
+    )
+
+
+@given(worlds())
+def test_dfs_walk_is_a_legal_walk_ending_at_the_goal(world):
+    cell = world.start
+    moves = dfs_moves(world, seed=1)
+    for move in moves:
+        cell = step(cell, move)
+        assert world.is_free(cell)
+    assert cell == world.goal
+    # Each tree edge is crossed at most twice (there and back).
+    assert len(moves) <= 2 * (world.size_x * world.size_y)
+
+
+@given(worlds())
+def test_map_lists_every_cell_once_as_new(world):
+    """Without all-moves each reachable cell appears at most once as new, and the target exactly once."""
+    for direction in DIRECTIONS:
+        lines = cognitive_map(world, direction, all_moves=False, marking=False, backtrack=False)
+        cells = [line for line in lines[1:] if line.startswith("(")]
+        assert len(cells) == len(set(cells))
+        target = world.goal if direction == "fwd" else world.start
+        last_step = lines[max(i for i, line in enumerate(lines) if line.startswith("Step ")) :]
+        assert f"({target[0]}, {target[1]})" in last_step
+        assert f"({target[0]}, {target[1]})" not in lines[: -len(last_step)]
