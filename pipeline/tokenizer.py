@@ -8,6 +8,7 @@ produce (``-1`` .. ``frame``), so extrapolated test worlds never meet an unknown
 
 from __future__ import annotations
 
+from functools import lru_cache
 from typing import Iterable
 
 from tokenizers import Regex, Tokenizer, decoders, models, pre_tokenizers
@@ -21,6 +22,7 @@ SPECIAL_TOKENS = (PAD, UNK, WORD_LEVEL_FORMAT.bos, WORD_LEVEL_FORMAT.turn_end,
                   WORD_LEVEL_FORMAT.human_prefix, WORD_LEVEL_FORMAT.gpt_prefix)
 
 
+@lru_cache(maxsize=1)
 def _pre_tokenizer() -> pre_tokenizers.PreTokenizer:
     return pre_tokenizers.Split(Regex(PIECE_PATTERN), behavior="isolated")
 

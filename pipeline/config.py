@@ -1,0 +1,211 @@
+"""The job's configuration: structured-config schemas (typos fail at compose time) and the checks
+that need several fields at once (impossible combinations fail before any work)."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Any, Optional
+
+from hydra.core.config_store import ConfigStore
+from omegaconf import MISSING, DictConfig, OmegaConf
+
+from pipeline.texts import MAP_VARIANTS
+
+
+class Direction(str, Enum):
+    fwd = "fwd"
+    bwd = "bwd"
+
+
+class Mode(str, Enum):
+    optimal = "optimal"
+    reachable = "reachable"
+
+
+class Baseline(str, Enum):
+    cogmap = "cogmap"
+    none = "none"
+    cot = "cot"
+    dfs = "dfs"
+
+
+class ModelKind(str, Enum):
+    scratch = "scratch"
+    hf = "hf"
+
+
+class Backend(str, Enum):
+    hf = "hf"
+    vllm = "vllm"
+
+
+@dataclass
+class DataConfig:
+    train_size_x: list[int] = field(default_factory=lambda: [2, 10])
+    train_size_y: list[int] = field(default_factory=lambda: [2, 10])
+    test_size_x: list[int] = field(default_factory=lambda: [2, 20])
+    test_size_y: list[int] = field(default_factory=lambda: [2, 20])
+    frame: int = 20
+    p_pit: list[float] = field(default_factory=lambda: [0.1, 0.5])
+    n_train: int = 50_000
+    n_test: int = 3_000
+    # The paper's released test worlds instead of generated ones (a path to a JSONL in its schema).
+    test_file: Optional[str] = None
+    seed: int = 0
+    workers: int = 2
+
+
+@dataclass
+class ChatFormatConfig:
+    human_prefix: str = "<human>"
+    gpt_prefix: str = "<gpt>"
+    turn_end: str = "</s>"
+    bos: str = "<s>"
+
+
+@dataclass
+class ModelConfig:
+    kind: ModelKind = ModelKind.scratch
+    # kind=hf: a local directory (or hub name on a machine that can reach one) of a causal LM.
+    path: Optional[str] = None
+    hidden_size: int = 128
+    num_layers: int = 4
+    num_heads: int = 4
+    intermediate_size: int = 512
+    max_length: int = 2048
+    dtype: str = "float32"
+    trust_remote_code: bool = False
+    chat_format: ChatFormatConfig = field(default_factory=ChatFormatConfig)
+
+
+@dataclass
+class TrainConfig:
+    max_steps: int = 1000
+    batch_tokens: int = 16384
+    gradient_accumulation_steps: int = 1
+    learning_rate: float = 1e-3
+    lr_scheduler_type: str = "cosine"
+    warmup_ratio: float = 0.03
+    weight_decay: float = 0.0
+    max_length: int = 2048
+    packing: bool = True
+    logging_steps: int = 10
+    save_steps: int = 100
+    save_total_limit: Optional[int] = None
+    bf16: bool = False
+    torch_threads: Optional[int] = None
+    eval_fraction: float = 0.02
+    # Distributed training (paper scale): launch `accelerate launch --config_file ...` in a subprocess.
+    accelerate_config: Optional[str] = None
+    # Log every checkpoint's weights (not optimizer state) so eval can draw the adaptation curve.
+    log_checkpoints: bool = False
+
+
+@dataclass
+class EvalConfig:
+    # How many test worlds to evaluate (the first n of the test split); null = all.
+    n_worlds: Optional[int] = None
+    backend: Backend = Backend.hf
+    batch_size: int = 32
+    max_new_tokens: int = 4096
+    max_steps: int = 200
+    # Figure 3: evaluate each logged checkpoint on the first `curve_worlds` test worlds.
+    curve: bool = False
+    curve_worlds: int = 50
+
+
+@dataclass
+class TrackingConfig:
+    root: str = "outputs"
+    uri: Optional[str] = None  # default: sqlite under root
+    experiment: str = "cogmap"
+
+
+@dataclass
+class RunConfig:
+    direction: Direction = Direction.bwd
+    mode: Mode = Mode.optimal
+    baseline: Baseline = Baseline.cogmap
+    all_moves: bool = True
+    marking: bool = True
+    backtrack: bool = True
+    seed: int = 0
+    # In a sweep grid, skip cells that are undefined (dfs in the optimal setting) instead of failing.
+    skip_undefined: bool = False
+    data: DataConfig = field(default_factory=DataConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    # Stable per-step working folders (checkpoints, partial eval records) for resuming; under tracking.root.
+    work_dir: str = MISSING
+
+
+def register_configs() -> None:
+    """Register the schema so that `defaults: [run_schema]` validates every composed config."""
+    ConfigStore.instance().store(name="run_schema", node=RunConfig)
+
+
+class ConfigError(ValueError):
+    """A configuration that cannot run, found before any work starts."""
+
+
+class UndefinedCell(ConfigError):
+    """A grid cell the paper does not define (dfs in the optimal setting)."""
+
+
+def variant_name(cfg: DictConfig | RunConfig) -> str:
+    """The variant the switches describe (a SPEC 3 map variant or a baseline); raises ConfigError if none."""
+    baseline = Baseline(cfg.baseline).value
+    if baseline != Baseline.cogmap.value:
+        return baseline
+    switches = (bool(cfg.all_moves), bool(cfg.marking), bool(cfg.backtrack))
+    for name, value in MAP_VARIANTS.items():
+        if tuple(value) == switches:
+            return name
+    raise ConfigError(
+        f"marking=on needs all_moves=on (got all_moves={cfg.all_moves}, marking={cfg.marking}): "
+        f"'cut' labels exist only where all four neighbours are listed. Allowed switch settings: "
+        + ", ".join(f"{n} (all_moves={a}, marking={m}, backtrack={b})" for n, (a, m, b) in MAP_VARIANTS.items())
+    )
+
+
+def validate(cfg: DictConfig) -> str:
+    """Check what the schema cannot; return the variant name. Raises ConfigError naming the bad value."""
+    variant = variant_name(cfg)
+    if variant == Baseline.dfs.value and Mode(cfg.mode) is Mode.optimal:
+        raise UndefinedCell("variant=dfs is defined only in the reachable setting (mode=reachable); got mode=optimal")
+    data = cfg.data
+    for name in ("train_size_x", "train_size_y", "test_size_x", "test_size_y"):
+        lo, hi = _pair(data[name], f"data.{name}")
+        if lo < 2 or hi < lo or hi > data.frame:
+            raise ConfigError(f"data.{name}={[lo, hi]}: need 2 <= min <= max <= data.frame ({data.frame})")
+    lo, hi = _pair(data.p_pit, "data.p_pit")
+    if not 0.0 <= lo <= hi <= 1.0:
+        raise ConfigError(f"data.p_pit={[lo, hi]}: need 0 <= min <= max <= 1")
+    for name in ("n_train", "n_test", "workers"):
+        if data[name] < 1:
+            raise ConfigError(f"data.{name}={data[name]}: must be at least 1")
+    if cfg.eval.n_worlds is not None and cfg.eval.n_worlds < 1:
+        raise ConfigError(f"eval.n_worlds={cfg.eval.n_worlds}: must be at least 1 (or null for all)")
+    if cfg.train.max_steps < 1:
+        raise ConfigError(f"train.max_steps={cfg.train.max_steps}: must be at least 1")
+    if ModelKind(cfg.model.kind) is ModelKind.hf and not cfg.model.path:
+        raise ConfigError("model.kind=hf needs model.path: a local directory with a causal LM and its tokenizer")
+    return variant
+
+
+def _pair(value: Any, name: str) -> tuple:
+    if len(value) != 2:
+        raise ConfigError(f"{name}={list(value)}: expected [min, max]")
+    return value[0], value[1]
+
+
+def config_hash(*parts: Any) -> str:
+    """A short stable hash of JSON-able parts (OmegaConf nodes are resolved first)."""
+    plain = [OmegaConf.to_container(p, resolve=True, enum_to_str=True) if isinstance(p, DictConfig) else p for p in parts]
+    payload = json.dumps(plain, sort_keys=True, default=str, separators=(",", ":"))
+    return hashlib.sha256(payload.encode()).hexdigest()[:16]

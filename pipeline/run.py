@@ -1,0 +1,183 @@
+"""`python -m pipeline.run`: one job = data-build -> finetune -> eval, each a (reusable) MLflow step run
+nested under the job's run. With `-m`, Hydra sweeps the config groups into several jobs."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+from dataclasses import asdict
+from pathlib import Path
+
+import hydra
+import mlflow
+from hydra.experimental.callback import Callback
+from omegaconf import DictConfig, OmegaConf
+
+from pipeline.config import ConfigError, UndefinedCell, config_hash, register_configs, validate
+from pipeline.data_build import (
+    TEST_CONVERSATIONS, TEST_STATS, TEST_WORLDS, TRAIN_CONVERSATIONS, TextSpec, build_splits, read_conversations,
+    write_dataset,
+)
+from pipeline.steps import StepRun, clear_inherited_run, get_or_run
+from pipeline.tracking import EPISODES_ARTIFACT, JOB_KIND, KIND_TAG, PAPER_ROWS, default_tracking_uri, ensure_experiment, step_run_tag
+
+log = logging.getLogger("pipeline.run")
+
+# Bumped when a step's code changes what it writes, so old runs are not reused for new semantics.
+STEP_VERSIONS = {"data-build": 1, "finetune": 1, "eval": 1}
+
+register_configs()
+OmegaConf.register_new_resolver("tracking_uri", default_tracking_uri, replace=True)
+
+
+def _artifact_root(cfg: DictConfig) -> str:
+    return str(Path(cfg.tracking.root) / "mlartifacts")
+
+
+def prepare_store(cfg: DictConfig) -> str:
+    """Create the SQLite store and the experiment (idempotent); return the experiment id."""
+    try:
+        return ensure_experiment(cfg.tracking.uri, cfg.tracking.experiment, _artifact_root(cfg))
+    except Exception as error:  # the store is the first thing touched: say which one failed
+        raise ConfigError(f"cannot open the MLflow store tracking.uri={cfg.tracking.uri!r}: {error}") from error
+
+
+class PrepareStore(Callback):
+    """Creates the store once in the parent process, before parallel jobs could race on a new database."""
+
+    def on_multirun_start(self, config: DictConfig, **kwargs) -> None:
+        prepare_store(config)
+
+
+# ---------------------------------------------------------------------------------------------------- hashes
+def _file_digest(path: str | None) -> str | None:
+    return hashlib.sha256(Path(path).expanduser().read_bytes()).hexdigest() if path else None
+
+
+def step_hashes(cfg: DictConfig, spec: TextSpec) -> dict[str, str]:
+    """The identity of each step: what decides its output, and its inputs' identities."""
+    data = config_hash("data-build", STEP_VERSIONS["data-build"], cfg.data, asdict(spec), _file_digest(cfg.data.test_file))
+    finetune = config_hash("finetune", STEP_VERSIONS["finetune"], cfg.model, cfg.train, cfg.seed, data)
+    evaluation = config_hash("eval", STEP_VERSIONS["eval"], cfg.eval, finetune, data)
+    return {"data-build": data, "finetune": finetune, "eval": evaluation}
+
+
+# ---------------------------------------------------------------------------------------------------- steps
+def _log_config(node: DictConfig, prefix: str) -> None:
+    flat = {f"{prefix}.{k}": v for k, v in _flatten(OmegaConf.to_container(node, resolve=True, enum_to_str=True))}
+    mlflow.log_params(flat)
+
+
+def _flatten(tree, prefix: str = ""):
+    if isinstance(tree, dict):
+        for key, value in tree.items():
+            yield from _flatten(value, f"{prefix}.{key}" if prefix else str(key))
+    else:
+        yield prefix, tree
+
+
+def data_build_body(cfg: DictConfig, spec: TextSpec, step_dir: Path) -> None:
+    _log_config(cfg.data, "data")
+    train, test = build_splits(cfg.data)
+    train_max = (max(cfg.data.train_size_x), max(cfg.data.train_size_y))
+    out = step_dir / "dataset"
+    summary = write_dataset(out, train, test, spec, train_max)
+    mlflow.set_tag("dataset_sha256", summary["sha256"])
+    mlflow.log_metrics({
+        "n_train": summary["n_train"], "n_test": summary["n_test"],
+        "train_tokens_mean": summary["train_tokens"]["mean"], "train_tokens_max": summary["train_tokens"]["max"],
+        "test_path_length_mean": summary["test_path_length"]["mean"],
+        "test_up_right_only": summary["test_up_right_only"], "test_interpolated": summary["test_interpolated"],
+    })
+    mlflow.log_artifacts(str(out))
+
+
+def finetune_body(cfg: DictConfig, data: StepRun, step_dir: Path) -> None:
+    from pipeline.train_step import run_finetune
+
+    _log_config(cfg.model, "model")
+    _log_config(cfg.train, "train")
+    conversations = read_conversations(data.artifact(TRAIN_CONVERSATIONS))
+    result = run_finetune(cfg, conversations, step_dir)
+    mlflow.log_metrics(result.metrics())
+    mlflow.log_artifacts(str(result.model_path), "model")
+
+
+def eval_body(cfg: DictConfig, spec: TextSpec, variant: str, data: StepRun, finetune: StepRun, step_dir: Path) -> None:
+    from pipeline.evaluate import evaluate, metrics
+    from pipeline.train_step import make_decoder
+    from pipeline.world import load_worlds
+
+    _log_config(cfg.eval, "eval")
+    worlds = load_worlds(data.artifact(TEST_WORLDS))
+    stats = [json.loads(line) for line in Path(data.artifact(TEST_STATS)).read_text().splitlines()]
+    n = cfg.eval.n_worlds or len(worlds)
+    if n > len(worlds):
+        raise ConfigError(f"eval.n_worlds={n} but the test split has {len(worlds)} worlds; allowed: 1..{len(worlds)} or null")
+    decoder = make_decoder(cfg, finetune.artifact("model"))
+    records = evaluate(
+        decoder, worlds[:n], stats[:n], mode=spec.mode,
+        direction=spec.direction or "fwd", variant=variant, max_steps=cfg.eval.max_steps,
+        partial_path=step_dir / "episodes.partial.jsonl",
+    )
+    episodes = step_dir / EPISODES_ARTIFACT
+    episodes.write_text("".join(json.dumps(record) + "\n" for record in records))
+    mlflow.log_artifact(str(episodes))
+    mlflow.log_metrics(metrics(records))
+
+
+# ---------------------------------------------------------------------------------------------------- job
+def run_job(cfg: DictConfig) -> dict | None:
+    """Run (or reuse) the job's three steps; return the eval metrics (None for a skipped grid cell)."""
+    try:
+        variant = validate(cfg)
+    except UndefinedCell as error:
+        if cfg.skip_undefined:
+            log.info("skipped (undefined in the paper's grid): %s", error)
+            return None
+        raise
+    direction, mode = str(cfg.direction.value), str(cfg.mode.value)
+    spec = TextSpec.of(direction, variant, mode, seed=cfg.data.seed)
+    hashes = step_hashes(cfg, spec)
+    clear_inherited_run()
+    experiment_id = prepare_store(cfg)
+    mlflow.set_tracking_uri(cfg.tracking.uri)
+    mlflow.set_experiment(experiment_id=experiment_id)
+    tags = {"direction": direction, "variant": variant, "mode": mode, "seed": str(cfg.seed),
+            "paper_row": PAPER_ROWS[variant]}
+    work_dir = Path(cfg.work_dir)
+    with mlflow.start_run(run_name=f"{direction}-{variant}-{mode}", tags={**tags, KIND_TAG: JOB_KIND}) as job:
+        mlflow.log_dict(OmegaConf.to_container(cfg, resolve=True, enum_to_str=True), "config.json")
+
+        def step(name: str, body) -> StepRun:
+            done = get_or_run(name, hashes[name], experiment_id=experiment_id, work_dir=work_dir, tags=tags, body=body)
+            mlflow.set_tag(step_run_tag(name), done.run_id)
+            log.info("%s: %s run %s", name, "reused" if done.reused else "ran", done.run_id)
+            return done
+
+        data = step("data-build", lambda d: data_build_body(cfg, spec, d))
+        finetune = step("finetune", lambda d: finetune_body(cfg, data, d))
+        evaluation = step("eval", lambda d: eval_body(cfg, spec, variant, data, finetune, d))
+        results = mlflow.get_run(evaluation.run_id).data.metrics
+        mlflow.log_metrics({key: value for key, value in results.items() if key != "step_seconds"})
+    reused = [s.step for s in (data, finetune, evaluation) if s.reused]
+    print(
+        f"[job] {direction} {variant} {mode}: success {results.get('success_rate', float('nan')):.3f} "
+        f"(interp {results.get('success_rate_interp', float('nan')):.3f}, "
+        f"extrap {results.get('success_rate_extrap', float('nan')):.3f}) over {int(results.get('n_episodes', 0))} "
+        f"worlds | reused: {', '.join(reused) or 'nothing'} | job run {job.info.run_id}",
+        flush=True,
+    )
+    return results
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="config")
+def main(cfg: DictConfig) -> float | None:
+    """Hydra entry point; returns the success rate (what a sweeper would optimise)."""
+    results = run_job(cfg)
+    return None if results is None else results.get("success_rate")
+
+
+if __name__ == "__main__":
+    main()

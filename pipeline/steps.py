@@ -1,0 +1,105 @@
+"""Steps that remember: a step is identified by a hash of what decides its output; a FINISHED MLflow run
+with that hash is reused instead of run again.
+
+A per-hash file lock makes this exact under parallel jobs: the holder either finds the finished run or
+runs the step, and any RUNNING run with the same hash that it finds belonged to a process that died
+(killed jobs release their locks), so it is marked KILLED rather than left looking alive. Each step gets
+a stable working folder (``<work_dir>/<step>/<hash>``) for checkpoints and partial records, so a rerun
+of an interrupted step resumes instead of starting over.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import os
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterator
+
+import mlflow
+from mlflow.entities import RunStatus
+
+from pipeline.tracking import HASH_TAG, KIND_TAG, STEP_KIND, STEP_TAG
+
+
+@dataclass(frozen=True)
+class StepRun:
+    """A finished step: the run that produced it, and whether this job reused it."""
+
+    step: str
+    run_id: str
+    hash: str
+    reused: bool
+
+    def artifact(self, path: str) -> str:
+        """A local path to one of the run's artifacts (downloaded if the store is remote)."""
+        return mlflow.artifacts.download_artifacts(run_id=self.run_id, artifact_path=path)
+
+
+@contextmanager
+def file_lock(path: Path) -> Iterator[None]:
+    """An exclusive advisory lock, released by the kernel even if the holder is killed."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "a") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def _runs_with_hash(experiment_id: str, step: str, step_hash: str, status: str) -> list:
+    query = f"tags.`{STEP_TAG}` = '{step}' and tags.`{HASH_TAG}` = '{step_hash}' and attributes.status = '{status}'"
+    return mlflow.search_runs(
+        experiment_ids=[experiment_id], filter_string=query, order_by=["attributes.start_time DESC"],
+        output_format="list",
+    )
+
+
+def find_finished(experiment_id: str, step: str, step_hash: str) -> str | None:
+    """The id of the latest FINISHED run of ``step`` with ``step_hash``, if any."""
+    runs = _runs_with_hash(experiment_id, step, step_hash, "FINISHED")
+    return runs[0].info.run_id if runs else None
+
+
+def _mark_stale_runs_killed(experiment_id: str, step: str, step_hash: str) -> None:
+    client = mlflow.MlflowClient()
+    for run in _runs_with_hash(experiment_id, step, step_hash, "RUNNING"):
+        client.set_tag(run.info.run_id, "cogmap.note", "interrupted: its process ended without finishing")
+        client.set_terminated(run.info.run_id, status=RunStatus.to_string(RunStatus.KILLED))
+
+
+def get_or_run(
+    step: str,
+    step_hash: str,
+    *,
+    experiment_id: str,
+    work_dir: str | Path,
+    tags: dict[str, str],
+    body: Callable[[Path], None],
+) -> StepRun:
+    """Reuse the FINISHED run of ``step`` with ``step_hash``, or run ``body(step_dir)`` in a new nested run.
+
+    ``body`` logs its own params, metrics and artifacts into the active run; an exception marks the run
+    FAILED and propagates.
+    """
+    step_dir = Path(work_dir) / step / step_hash
+    with file_lock(Path(work_dir) / "locks" / f"{step}-{step_hash}.lock"):
+        found = find_finished(experiment_id, step, step_hash)
+        if found:
+            return StepRun(step, found, step_hash, reused=True)
+        _mark_stale_runs_killed(experiment_id, step, step_hash)
+        step_dir.mkdir(parents=True, exist_ok=True)
+        run_tags = {**tags, KIND_TAG: STEP_KIND, STEP_TAG: step, HASH_TAG: step_hash}
+        with mlflow.start_run(run_name=step, nested=True, tags=run_tags) as run:
+            started = time.perf_counter()
+            body(step_dir)
+            mlflow.log_metric("step_seconds", time.perf_counter() - started)
+        return StepRun(step, run.info.run_id, step_hash, reused=False)
+
+
+def clear_inherited_run() -> None:
+    """Forget a run id left in the environment, which would make every start_run resume that run."""
+    os.environ.pop("MLFLOW_RUN_ID", None)
