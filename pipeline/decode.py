@@ -1,0 +1,557 @@
+"""Greedy decoding for both settings: batched answers (optimal) and multi-turn episodes (reachable).
+
+The HF backend keeps one KV cache (a `DynamicCache`) for a batch of sequences of different lengths: rows
+are left-padded and may have holes (the per-row padding of an appended chunk). The attention mask marks
+the real tokens and position ids are counted from it, so every row computes what it would compute alone.
+A row leaves the batch as soon as its turn ends, so finished sequences cost nothing.
+
+In the reachable setting an episode keeps its cache across turns: the env's next observation is encoded
+with `encode_followup` and appended; the history is never re-encoded. The episode loop (env, parsing,
+records) is shared with the vLLM backend (`pipeline.vllm_backend`): a backend only *continues sequences*
+(`SequenceBackend`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Iterable, Literal, NamedTuple, Protocol, Sequence
+
+import torch
+from transformers import DynamicCache
+
+from pipeline.chat import ChatFormat, TextTokenizer, encode_followup, encode_prompt, turn_end_ids
+from pipeline.env import EpisodeRecord, GridEnv, Outcome
+from pipeline.scoring import parse_action
+from pipeline.texts import prompt_turns
+from pipeline.world import World
+
+StopReason = Literal["turn_end", "max_new_tokens", "context", "error"]
+# How `play` keeps the history: "cached" is the real thing; the other two are the baselines that
+# benchmarks/bench_decode.py measures it against (and tests compare it with).
+HistoryStrategy = Literal["cached", "reencode", "generate"]
+# (answer text, observation the answer replies to) -> the move to play, or None (INVALID).
+MoveChooser = Callable[[str, str], "str | None"]
+
+
+@dataclass(frozen=True)
+class Generation:
+    """One optimal-setting answer. `finished`: it ended with the turn-end ids (not included in `text`)."""
+
+    text: str
+    n_tokens: int
+    finished: bool
+    stop_reason: StopReason
+    error: str | None = None
+
+
+@dataclass
+class EpisodeResult:
+    """One reachable-setting episode: the env's record plus the raw answers.
+
+    `error` is set (and `record.outcome` is None) when the prompt or the growing history no longer fits
+    the model's context; the episode then stops where it was.
+    """
+
+    world_index: int
+    record: EpisodeRecord
+    answers: list[str]
+    n_tokens: int
+    error: str | None = None
+
+    @property
+    def outcome(self) -> Outcome | None:
+        return self.record.outcome
+
+    @property
+    def moves(self) -> list[str]:
+        return self.record.moves
+
+    @property
+    def n_moves(self) -> int:
+        return self.record.n_moves
+
+    def to_dict(self) -> dict:
+        """Flat JSON-ready row: the env record's fields plus index, answers, token count and error."""
+        return {"world_index": self.world_index, **self.record.to_dict(), "answers": list(self.answers),
+                "n_tokens": self.n_tokens, "error": self.error}
+
+
+class Request(NamedTuple):
+    """Ids to append to a sequence (a new key starts one), and the cap on the tokens generated after them."""
+
+    ids: list[int]
+    max_new_tokens: int
+
+
+@dataclass(frozen=True)
+class Continuation:
+    """What a backend generated for one sequence: new ids without the turn-end ids, and why it stopped."""
+
+    ids: list[int]
+    stop_reason: StopReason
+    error: str | None = None
+
+    @property
+    def finished(self) -> bool:
+        return self.stop_reason == "turn_end"
+
+
+class SequenceBackend(Protocol):
+    """What the episode loop needs of a backend: keyed token sequences it can extend and continue."""
+
+    def continue_sequences(self, requests: dict[int, Request]) -> dict[int, Continuation]:
+        """Append each request's ids to its sequence, then greedily generate until the turn ends."""
+        ...
+
+    def release(self, keys: Iterable[int]) -> None:
+        """Forget these sequences (unknown keys are ignored)."""
+        ...
+
+
+def context_error(n_tokens: int, max_length: int) -> str:
+    """The per-item message for a sequence that leaves no room to generate within the context."""
+    return f"sequence of {n_tokens} tokens leaves no room to generate within the context of {max_length}"
+
+
+# ----------------------------------------------------------------------------------------------------
+# The shared episode loop
+
+
+@dataclass
+class _Episode:
+    index: int
+    env: GridEnv
+    observation: str
+    answers: list[str] = field(default_factory=list)
+    n_tokens: int = 0
+
+
+def play_episodes(
+    backend: SequenceBackend,
+    tokenizer: TextTokenizer,
+    fmt: ChatFormat,
+    worlds: Sequence[World],
+    *,
+    batch_size: int,
+    max_steps: int = 200,
+    max_new_tokens: int = 4096,
+    max_followup_tokens: int = 64,
+    on_episode: Callable[[EpisodeResult], None] | None = None,
+    choose_move: MoveChooser | None = None,
+) -> list[EpisodeResult]:
+    """Play one episode per world, up to `batch_size` at a time; a finished episode's slot is refilled.
+
+    Each turn every live episode's sequence is continued once; the answer is parsed into a move
+    (`choose_move`, default `scoring.parse_action`), the env steps, and the next observation is appended.
+    An answer cut at its cap (`max_new_tokens` for the first answer, `max_followup_tokens` for later ones)
+    is scored as it stands and, if the episode goes on, closed with the turn-end ids.
+    `on_episode` is called as each episode ends (in order of ending); the list returned is in input order.
+    """
+    choose = choose_move or (lambda text, _observation: parse_action(text))
+    end_ids = turn_end_ids(tokenizer, fmt)
+    pending_worlds = iter(enumerate(worlds))
+    results: list[EpisodeResult | None] = [None] * len(worlds)
+    live: dict[int, _Episode] = {}
+    requests: dict[int, Request] = {}
+
+    def finish(episode: _Episode, error: str | None = None) -> None:
+        del live[episode.index]
+        requests.pop(episode.index, None)
+        result = EpisodeResult(episode.index, episode.env.record(), episode.answers, episode.n_tokens, error)
+        results[episode.index] = result
+        if on_episode is not None:
+            on_episode(result)
+
+    while True:
+        for index, world in pending_worlds:
+            env = GridEnv(world, max_steps=max_steps)
+            live[index] = _Episode(index, env, env.reset())
+            requests[index] = Request(encode_prompt(tokenizer, fmt, prompt_turns(world)), max_new_tokens)
+            if len(live) >= batch_size:
+                break
+        if not live:
+            break
+        continuations = backend.continue_sequences(requests)
+        requests = {}
+        ended = []
+        for key, cont in continuations.items():
+            episode = live[key]
+            episode.n_tokens += len(cont.ids)
+            if cont.error is not None or cont.stop_reason == "context":
+                if cont.ids:
+                    episode.answers.append(tokenizer.decode(cont.ids, skip_special_tokens=False))
+                finish(episode, cont.error or "the history reached the end of the context")
+                ended.append(key)
+                continue
+            text = tokenizer.decode(cont.ids, skip_special_tokens=False)
+            episode.answers.append(text)
+            step = episode.env.step(choose(text, episode.observation))
+            if step.done:
+                finish(episode)
+                ended.append(key)
+                continue
+            episode.observation = step.observation
+            closing = [] if cont.finished else end_ids
+            requests[key] = Request(closing + encode_followup(tokenizer, fmt, step.observation), max_followup_tokens)
+        backend.release(ended)
+    return [r for r in results if r is not None]
+
+
+# ----------------------------------------------------------------------------------------------------
+# HF: a batch of cached rows
+
+
+class _Rows:
+    """Sequences sharing one `DynamicCache`; `mask` (batch, cache length) marks real tokens."""
+
+    def __init__(self, cache: DynamicCache, mask: torch.Tensor, lengths: list[int]):
+        self.cache, self.mask, self.lengths = cache, mask, lengths
+
+    @classmethod
+    def empty(cls, model, n: int) -> _Rows:
+        mask = torch.zeros(n, 0, dtype=torch.long, device=model.device)
+        return cls(DynamicCache(config=model.config), mask, [0] * n)
+
+    def __len__(self) -> int:
+        return len(self.lengths)
+
+    def extend(self, model, chunks: Sequence[Sequence[int]], pad_id: int) -> torch.Tensor:
+        """Feed one chunk per row (left-padded to a block); returns each row's next-token logits."""
+        width = max(len(chunk) for chunk in chunks)
+        ids = torch.full((len(chunks), width), pad_id, dtype=torch.long)
+        chunk_mask = torch.zeros(len(chunks), width, dtype=torch.long)
+        for row, chunk in enumerate(chunks):
+            if chunk:
+                ids[row, width - len(chunk):] = torch.tensor(chunk)
+                chunk_mask[row, width - len(chunk):] = 1
+        ids, chunk_mask = ids.to(self.mask.device), chunk_mask.to(self.mask.device)
+        positions = torch.tensor(self.lengths, device=self.mask.device)[:, None] + (chunk_mask.cumsum(1) - 1).clamp(min=0)
+        self.mask = torch.cat([self.mask, chunk_mask], dim=1)
+        self.lengths = [n + len(chunk) for n, chunk in zip(self.lengths, chunks)]
+        out = model(input_ids=ids, attention_mask=self.mask, position_ids=positions,
+                    past_key_values=self.cache, use_cache=True, logits_to_keep=1)
+        return out.logits[:, -1]
+
+    def step(self, model, tokens: Sequence[int]) -> torch.Tensor:
+        """Feed one token per row; returns the next-token logits."""
+        device = self.mask.device
+        ids = torch.tensor(tokens, device=device)[:, None]
+        positions = torch.tensor(self.lengths, device=device)[:, None]
+        self.mask = torch.cat([self.mask, torch.ones_like(ids)], dim=1)
+        self.lengths = [n + 1 for n in self.lengths]
+        out = model(input_ids=ids, attention_mask=self.mask, position_ids=positions,
+                    past_key_values=self.cache, use_cache=True, logits_to_keep=1)
+        return out.logits[:, -1]
+
+    def select(self, rows: Sequence[int], config) -> _Rows:
+        """A copy holding only `rows`, without the columns that are padding in all of them."""
+        index = torch.tensor(rows, device=self.mask.device)
+        mask = self.mask[index]
+        real = mask.any(0).nonzero()
+        start = int(real[0]) if len(real) else mask.shape[1]
+        layers = [(layer.keys[index][:, :, start:], layer.values[index][:, :, start:]) for layer in self.cache.layers]
+        return _Rows(DynamicCache(layers, config=config), mask[:, start:], [self.lengths[r] for r in rows])
+
+    @staticmethod
+    def merge(parts: Sequence[_Rows], config) -> _Rows:
+        """All rows of `parts` in one batch, compacted: each row's real tokens right-aligned, no holes."""
+        lengths = [n for part in parts for n in part.lengths]
+        width = max(lengths)
+        device = parts[0].mask.device
+        moves = []  # per part: (source rows, source columns, destination rows, destination columns)
+        base = 0
+        for part in parts:
+            src_rows, src_cols = part.mask.nonzero(as_tuple=True)
+            rank = part.mask.cumsum(1)[src_rows, src_cols] - 1
+            counts = part.mask.sum(1)
+            moves.append((src_rows, src_cols, src_rows + base, width - counts[src_rows] + rank))
+            base += len(part)
+        layers = []
+        for depth, reference in enumerate(parts[0].cache.layers):
+            kv = []
+            for which in ("keys", "values"):
+                ref = getattr(reference, which)
+                merged = ref.new_zeros(len(lengths), ref.shape[1], width, ref.shape[3])
+                for part, (src_rows, src_cols, dst_rows, dst_cols) in zip(parts, moves):
+                    merged[dst_rows, :, dst_cols] = getattr(part.cache.layers[depth], which)[src_rows, :, src_cols]
+                kv.append(merged)
+            layers.append(tuple(kv))
+        mask = (torch.arange(width, device=device)[None, :]
+                >= width - torch.tensor(lengths, device=device)[:, None]).long()
+        return _Rows(DynamicCache(layers, config=config), mask, lengths)
+
+
+@dataclass
+class _Decoded:
+    ids: list[int]
+    stop_reason: StopReason
+
+
+class HFDecoder:
+    """Greedy decoding with a transformers causal LM (full-attention layers), batched with a KV cache.
+
+    `max_new_tokens` caps an optimal-setting answer and a first reachable answer; `max_followup_tokens`
+    caps the later (bare move) answers. `max_length` (default: the model's `max_position_embeddings`)
+    bounds prompt plus generated tokens; an item that does not fit gets an error, never an exception.
+    """
+
+    def __init__(
+        self,
+        model,
+        tokenizer: TextTokenizer,
+        fmt: ChatFormat,
+        *,
+        batch_size: int = 16,
+        max_new_tokens: int = 4096,
+        max_followup_tokens: int = 64,
+        max_length: int | None = None,
+    ):
+        if batch_size < 1 or max_new_tokens < 1 or max_followup_tokens < 1:
+            raise ValueError("batch_size, max_new_tokens and max_followup_tokens must be at least 1")
+        if any(getattr(model.config.get_text_config(decoder=True), "layer_types", None) or []) and any(
+            kind != "full_attention" for kind in model.config.get_text_config(decoder=True).layer_types
+        ):
+            raise ValueError("HFDecoder supports full-attention models only (its cache rows are compacted by hand)")
+        self.model = model.eval()
+        self.tokenizer, self.fmt = tokenizer, fmt
+        self.batch_size, self.max_new_tokens, self.max_followup_tokens = batch_size, max_new_tokens, max_followup_tokens
+        self.max_length = max_length or model.config.max_position_embeddings
+        self.stop_ids = turn_end_ids(tokenizer, fmt)
+        if not self.stop_ids:
+            raise ValueError("the chat format has an empty turn_end: decoding could never stop")
+        pad = getattr(tokenizer, "pad_token_id", None)
+        self.pad_id = pad if pad is not None else 0
+
+    # -- optimal setting ------------------------------------------------------------------------------
+
+    def answer(self, prompts: Sequence[Sequence[dict]], max_new_tokens: int | None = None) -> list[Generation]:
+        """Greedy answers to conversations (each ending with a human turn), in input order.
+
+        Prompts are sorted by length into batches; a sequence leaves its batch when its turn ends.
+        """
+        cap = max_new_tokens or self.max_new_tokens
+        encoded = [encode_prompt(self.tokenizer, self.fmt, turns) for turns in prompts]
+        results: list[Generation | None] = [None] * len(encoded)
+        fitting = []
+        for i, ids in enumerate(encoded):
+            if len(ids) >= self.max_length:
+                results[i] = Generation("", 0, False, "error", context_error(len(ids), self.max_length))
+            else:
+                fitting.append(i)
+        fitting.sort(key=lambda i: len(encoded[i]))
+        with torch.inference_mode():
+            for start in range(0, len(fitting), self.batch_size):
+                batch = fitting[start:start + self.batch_size]
+                rows, logits = self._prefill(None, [encoded[i] for i in batch])
+                decoded, _ = self._decode(rows, logits, [cap] * len(batch), keep=False)
+                for i, out in zip(batch, decoded):
+                    results[i] = Generation(self._text(out), len(out.ids), out.stop_reason == "turn_end",
+                                            out.stop_reason)
+        return results
+
+    # -- reachable setting ----------------------------------------------------------------------------
+
+    def play(
+        self,
+        worlds: Sequence[World],
+        *,
+        max_steps: int = 200,
+        on_episode: Callable[[EpisodeResult], None] | None = None,
+        strategy: HistoryStrategy = "cached",
+        choose_move: MoveChooser | None = None,
+    ) -> list[EpisodeResult]:
+        """Play every world's episode, `batch_size` at a time, each keeping its KV cache across turns.
+
+        `strategy` "reencode" (batched, history re-encoded every turn) and "generate" (one `model.generate`
+        per episode turn) are the baselines the benchmark compares against; `choose_move` replaces the
+        answer parser (benchmarks use it to force multi-turn episodes out of an untrained model).
+        """
+        backend = {"cached": _CachedSequences, "reencode": _ReencodedSequences, "generate": _GenerateSequences}[strategy](self)
+        with torch.inference_mode():
+            return play_episodes(
+                backend, self.tokenizer, self.fmt, worlds,
+                batch_size=1 if strategy == "generate" else self.batch_size,
+                max_steps=max_steps, max_new_tokens=self.max_new_tokens,
+                max_followup_tokens=self.max_followup_tokens, on_episode=on_episode, choose_move=choose_move,
+            )
+
+    # -- the engine -----------------------------------------------------------------------------------
+
+    def _text(self, out: _Decoded) -> str:
+        return self.tokenizer.decode(out.ids, skip_special_tokens=False)
+
+    def _prefill(self, rows: _Rows | None, chunks: Sequence[Sequence[int]]) -> tuple[_Rows, torch.Tensor]:
+        """Append one chunk per row to `rows` (None: new rows); returns the rows and next-token logits."""
+        rows = rows or _Rows.empty(self.model, len(chunks))
+        return rows, rows.extend(self.model, chunks, self.pad_id)
+
+    def _decode(
+        self, rows: _Rows, logits: torch.Tensor, caps: Sequence[int], *, keep: bool
+    ) -> tuple[list[_Decoded], tuple[_Rows, list[int]] | None]:
+        """Decode greedily from `logits` until every row stopped; a row leaves the batch when it stops.
+
+        With `keep`, the stopped rows are merged back (compacted) and returned with their order (row
+        indices of the input); each row's last generated token is then not in the cache yet, so it must
+        lead the row's next chunk.
+        """
+        config = self.model.config
+        active = list(range(len(rows)))  # active[j]: the input row of batch row j
+        generated: list[list[int]] = [[] for _ in active]
+        reasons: list[StopReason | None] = [None] * len(active)
+        parked: list[_Rows] = []
+        parked_order: list[int] = []
+        n_stop = len(self.stop_ids)
+        while True:
+            tokens = logits.argmax(-1).tolist()
+            stopped = []
+            for j, (i, token) in enumerate(zip(active, tokens)):
+                ids = generated[i]
+                ids.append(token)
+                if ids[-n_stop:] == self.stop_ids:
+                    reasons[i] = "turn_end"
+                elif len(ids) >= caps[i]:
+                    reasons[i] = "max_new_tokens"
+                elif rows.lengths[j] + 1 >= self.max_length:
+                    reasons[i] = "context"
+                if reasons[i] is not None:
+                    stopped.append(j)
+            if stopped:
+                if keep:
+                    parked.append(rows.select(stopped, config))
+                    parked_order += [active[j] for j in stopped]
+                going = [j for j in range(len(active)) if reasons[active[j]] is None]
+                if not going:
+                    break
+                rows = rows.select(going, config)
+                active = [active[j] for j in going]
+                tokens = [tokens[j] for j in going]
+            logits = rows.step(self.model, tokens)
+        decoded = [
+            _Decoded(ids[:-n_stop] if reason == "turn_end" else ids, reason)
+            for ids, reason in zip(generated, reasons)
+        ]
+        kept = (_Rows.merge(parked, config), parked_order) if keep else None
+        return decoded, kept
+
+
+class _CachedSequences:
+    """HFDecoder's backend for episodes: one cache for all live sequences, extended turn after turn."""
+
+    def __init__(self, decoder: HFDecoder):
+        self.decoder = decoder
+        self.rows: _Rows | None = None
+        self.keys: list[int] = []  # the key of each cache row
+        self.unfed: dict[int, list[int]] = {}  # generated ids not in the cache yet
+
+    def release(self, keys: Iterable[int]) -> None:
+        gone = set(keys)
+        keep = [r for r, key in enumerate(self.keys) if key not in gone]
+        if len(keep) == len(self.keys):
+            return
+        for key in gone:
+            self.unfed.pop(key, None)
+        self.rows = self.rows.select(keep, self.decoder.model.config) if keep else None
+        self.keys = [self.keys[r] for r in keep]
+
+    def continue_sequences(self, requests: dict[int, Request]) -> dict[int, Continuation]:
+        dec = self.decoder
+        missing = set(self.keys) - set(requests)
+        if missing:
+            raise ValueError(f"every live sequence must be continued; no request for {sorted(missing)}")
+        chunks = {key: self.unfed.pop(key, []) + list(req.ids) for key, req in requests.items()}
+        lengths = dict(zip(self.keys, self.rows.lengths)) if self.rows else {}
+        results: dict[int, Continuation] = {}
+        for key, chunk in chunks.items():
+            total = lengths.get(key, 0) + len(chunk)
+            if total >= dec.max_length:
+                results[key] = Continuation([], "error", context_error(total, dec.max_length))
+        self.release(results)
+        old = list(self.keys)
+        new = [key for key in requests if key not in results and key not in lengths]
+        if not old and not new:
+            return results
+        # Old rows extend their cache with a short followup, new rows are prefilled on their own (so old
+        # rows never pad up to a whole prompt); then one batch decodes them all.
+        parts, logits = [], []
+        for keys, rows in ((old, self.rows), (new, None)):
+            if keys:
+                rows, part_logits = dec._prefill(rows, [chunks[k] for k in keys])
+                parts.append(rows)
+                logits.append(part_logits)
+        rows = parts[0] if len(parts) == 1 else _Rows.merge(parts, dec.model.config)
+        keys = old + new
+        decoded, (self.rows, order) = dec._decode(rows, torch.cat(logits), [requests[k].max_new_tokens for k in keys],
+                                                  keep=True)
+        self.keys = [keys[i] for i in order]
+        for key, out in zip(keys, decoded):
+            # The last generated token is not in the cache yet; it leads the next chunk.
+            self.unfed[key] = dec.stop_ids[-1:] if out.stop_reason == "turn_end" else out.ids[-1:]
+            results[key] = Continuation(out.ids, out.stop_reason)
+        return results
+
+
+class _ReencodedSequences:
+    """Baseline: batched like `_CachedSequences`, but every turn re-encodes the whole history."""
+
+    def __init__(self, decoder: HFDecoder):
+        self.decoder = decoder
+        self.history: dict[int, list[int]] = {}
+
+    def release(self, keys: Iterable[int]) -> None:
+        for key in keys:
+            self.history.pop(key, None)
+
+    def continue_sequences(self, requests: dict[int, Request]) -> dict[int, Continuation]:
+        dec = self.decoder
+        results: dict[int, Continuation] = {}
+        keys = []
+        for key, req in requests.items():
+            self.history[key] = self.history.get(key, []) + list(req.ids)
+            if len(self.history[key]) >= dec.max_length:
+                results[key] = Continuation([], "error", context_error(len(self.history[key]), dec.max_length))
+            else:
+                keys.append(key)
+        if keys:
+            rows, logits = dec._prefill(None, [self.history[k] for k in keys])
+            decoded, _ = dec._decode(rows, logits, [requests[k].max_new_tokens for k in keys], keep=False)
+            for key, out in zip(keys, decoded):
+                self.history[key] += out.ids + (dec.stop_ids if out.stop_reason == "turn_end" else [])
+                results[key] = Continuation(out.ids, out.stop_reason)
+        return results
+
+
+class _GenerateSequences:
+    """Baseline: one `model.generate` call per sequence and turn, re-encoding the history each time."""
+
+    def __init__(self, decoder: HFDecoder):
+        if len(decoder.stop_ids) != 1:
+            raise ValueError("the generate baseline needs a one-token turn end")
+        self.decoder = decoder
+        self.history: dict[int, list[int]] = {}
+
+    def release(self, keys: Iterable[int]) -> None:
+        for key in keys:
+            self.history.pop(key, None)
+
+    def continue_sequences(self, requests: dict[int, Request]) -> dict[int, Continuation]:
+        dec = self.decoder
+        results: dict[int, Continuation] = {}
+        for key, req in requests.items():
+            history = self.history.get(key, []) + list(req.ids)
+            self.history[key] = history
+            room = dec.max_length - len(history)
+            if room < 1:
+                results[key] = Continuation([], "error", context_error(len(history), dec.max_length))
+                continue
+            ids = torch.tensor([history], device=dec.model.device)
+            out = dec.model.generate(ids, attention_mask=torch.ones_like(ids), do_sample=False,
+                                     max_new_tokens=min(req.max_new_tokens, room), eos_token_id=dec.stop_ids[0],
+                                     pad_token_id=dec.pad_id)[0, len(history):].tolist()
+            if out[-1:] == dec.stop_ids:
+                reason, out = "turn_end", out[:-1]
+                self.history[key] += out + dec.stop_ids
+            else:
+                reason = "max_new_tokens" if len(out) >= req.max_new_tokens else "context"
+                self.history[key] += out
+            results[key] = Continuation(out, reason)
+        return results
