@@ -13,6 +13,7 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, OmegaConf
 
 from pipeline.texts import MAP_VARIANTS
+from pipeline.tracking import default_tracking_uri
 
 
 class Direction(str, Enum):
@@ -84,7 +85,9 @@ class ModelConfig:
 @dataclass
 class TrainConfig:
     max_steps: int = 1000
+    # A batch is up to `batch_tokens` packed tokens, or, if set, `per_device_batch_size` sequences.
     batch_tokens: int = 16384
+    per_device_batch_size: Optional[int] = None
     gradient_accumulation_steps: int = 1
     learning_rate: float = 1e-3
     lr_scheduler_type: str = "cosine"
@@ -133,6 +136,8 @@ class RunConfig:
     marking: bool = True
     backtrack: bool = True
     seed: int = 0
+    # torch threads for this job (null: torch's default). Two 1-thread jobs beat one 2-thread job on small models.
+    threads: Optional[int] = None
     # In a sweep grid, skip cells that are undefined (dfs in the optimal setting) instead of failing.
     skip_undefined: bool = False
     data: DataConfig = field(default_factory=DataConfig)
@@ -145,8 +150,9 @@ class RunConfig:
 
 
 def register_configs() -> None:
-    """Register the schema so that `defaults: [run_schema]` validates every composed config."""
+    """Register the schema (so `defaults: [run_schema]` validates every composed config) and resolvers."""
     ConfigStore.instance().store(name="run_schema", node=RunConfig)
+    OmegaConf.register_new_resolver("tracking_uri", default_tracking_uri, replace=True)
 
 
 class ConfigError(ValueError):
@@ -189,8 +195,11 @@ def validate(cfg: DictConfig) -> str:
     for name in ("n_train", "n_test", "workers"):
         if data[name] < 1:
             raise ConfigError(f"data.{name}={data[name]}: must be at least 1")
-    if cfg.eval.n_worlds is not None and cfg.eval.n_worlds < 1:
-        raise ConfigError(f"eval.n_worlds={cfg.eval.n_worlds}: must be at least 1 (or null for all)")
+    if cfg.eval.n_worlds is not None and not 1 <= cfg.eval.n_worlds <= data.n_test:
+        raise ConfigError(
+            f"eval.n_worlds={cfg.eval.n_worlds}: the test split has data.n_test={data.n_test} worlds; "
+            f"allowed: 1..{data.n_test} or null for all"
+        )
     if cfg.train.max_steps < 1:
         raise ConfigError(f"train.max_steps={cfg.train.max_steps}: must be at least 1")
     if ModelKind(cfg.model.kind) is ModelKind.hf and not cfg.model.path:

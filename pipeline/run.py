@@ -20,7 +20,7 @@ from pipeline.data_build import (
     write_dataset,
 )
 from pipeline.steps import StepRun, clear_inherited_run, get_or_run
-from pipeline.tracking import EPISODES_ARTIFACT, JOB_KIND, KIND_TAG, PAPER_ROWS, default_tracking_uri, ensure_experiment, step_run_tag
+from pipeline.tracking import EPISODES_ARTIFACT, JOB_KIND, KIND_TAG, PAPER_ROWS, ensure_experiment, step_run_tag
 
 log = logging.getLogger("pipeline.run")
 
@@ -28,7 +28,6 @@ log = logging.getLogger("pipeline.run")
 STEP_VERSIONS = {"data-build": 1, "finetune": 1, "eval": 1}
 
 register_configs()
-OmegaConf.register_new_resolver("tracking_uri", default_tracking_uri, replace=True)
 
 
 def _artifact_root(cfg: DictConfig) -> str:
@@ -141,6 +140,10 @@ def run_job(cfg: DictConfig) -> dict | None:
     spec = TextSpec.of(direction, variant, mode, seed=cfg.data.seed)
     hashes = step_hashes(cfg, spec)
     clear_inherited_run()
+    if cfg.threads:
+        import torch
+
+        torch.set_num_threads(cfg.threads)
     experiment_id = prepare_store(cfg)
     mlflow.set_tracking_uri(cfg.tracking.uri)
     mlflow.set_experiment(experiment_id=experiment_id)
