@@ -108,6 +108,12 @@ class SequenceBackend(Protocol):
         ...
 
 
+def generation(tokenizer: TextTokenizer, out: Continuation) -> Generation:
+    """A continuation as an optimal-setting answer."""
+    text = tokenizer.decode(out.ids, skip_special_tokens=False)
+    return Generation(text, len(out.ids), out.finished, out.stop_reason, out.error)
+
+
 def context_error(n_tokens: int, max_length: int) -> str:
     """The per-item message for a sequence that leaves no room to generate within the context."""
     return f"sequence of {n_tokens} tokens leaves no room to generate within the context of {max_length}"
@@ -308,9 +314,8 @@ class HFDecoder:
     ):
         if batch_size < 1 or max_new_tokens < 1 or max_followup_tokens < 1:
             raise ValueError("batch_size, max_new_tokens and max_followup_tokens must be at least 1")
-        if any(getattr(model.config.get_text_config(decoder=True), "layer_types", None) or []) and any(
-            kind != "full_attention" for kind in model.config.get_text_config(decoder=True).layer_types
-        ):
+        layer_types = getattr(model.config.get_text_config(decoder=True), "layer_types", None) or []
+        if any(kind != "full_attention" for kind in layer_types):
             raise ValueError("HFDecoder supports full-attention models only (its cache rows are compacted by hand)")
         self.model = model.eval()
         self.tokenizer, self.fmt = tokenizer, fmt
@@ -342,11 +347,9 @@ class HFDecoder:
         with torch.inference_mode():
             for start in range(0, len(fitting), self.batch_size):
                 batch = fitting[start:start + self.batch_size]
-                rows, logits = self._prefill(None, [encoded[i] for i in batch])
-                decoded, _ = self._decode(rows, logits, [cap] * len(batch), keep=False)
-                for i, out in zip(batch, decoded):
-                    results[i] = Generation(self._text(out), len(out.ids), out.stop_reason == "turn_end",
-                                            out.stop_reason)
+                outs = self._continue_batch([encoded[i] for i in batch], [cap] * len(batch))
+                for i, out in zip(batch, outs):
+                    results[i] = generation(self.tokenizer, out)
         return results
 
     # -- reachable setting ----------------------------------------------------------------------------
@@ -366,7 +369,11 @@ class HFDecoder:
         per episode turn) are the baselines the benchmark compares against; `choose_move` replaces the
         answer parser (benchmarks use it to force multi-turn episodes out of an untrained model).
         """
-        backend = {"cached": _CachedSequences, "reencode": _ReencodedSequences, "generate": _GenerateSequences}[strategy](self)
+        if strategy == "cached":
+            backend = _CachedSequences(self)
+        else:
+            continue_prompts = self._continue_batch if strategy == "reencode" else self._continue_one_by_one
+            backend = HistorySequences(continue_prompts, self.stop_ids, self.max_length)
         with torch.inference_mode():
             return play_episodes(
                 backend, self.tokenizer, self.fmt, worlds,
@@ -377,8 +384,28 @@ class HFDecoder:
 
     # -- the engine -----------------------------------------------------------------------------------
 
-    def _text(self, out: _Decoded) -> str:
-        return self.tokenizer.decode(out.ids, skip_special_tokens=False)
+    def _continue_batch(self, prompts: list[list[int]], caps: list[int]) -> list[Continuation]:
+        """Whole prompts (each shorter than max_length) continued as one batch, no cache kept."""
+        rows, logits = self._prefill(None, prompts)
+        decoded, _ = self._decode(rows, logits, caps, keep=False)
+        return [Continuation(out.ids, out.stop_reason) for out in decoded]
+
+    def _continue_one_by_one(self, prompts: list[list[int]], caps: list[int]) -> list[Continuation]:
+        """Baseline: one `model.generate` call per prompt (a one-token turn end)."""
+        if len(self.stop_ids) != 1:
+            raise ValueError("the generate baseline needs a one-token turn end")
+        results = []
+        for prompt, cap in zip(prompts, caps):
+            ids = torch.tensor([prompt], device=self.model.device)
+            room = self.max_length - len(prompt)
+            out = self.model.generate(ids, attention_mask=torch.ones_like(ids), do_sample=False,
+                                      max_new_tokens=min(cap, room), eos_token_id=self.stop_ids[0],
+                                      pad_token_id=self.pad_id)[0, len(prompt):].tolist()
+            if out[-1:] == self.stop_ids:
+                results.append(Continuation(out[:-1], "turn_end"))
+            else:
+                results.append(Continuation(out, "max_new_tokens" if len(out) >= cap else "context"))
+        return results
 
     def _prefill(self, rows: _Rows | None, chunks: Sequence[Sequence[int]]) -> tuple[_Rows, torch.Tensor]:
         """Append one chunk per row to `rows` (None: new rows); returns the rows and next-token logits."""
@@ -490,11 +517,20 @@ class _CachedSequences:
         return results
 
 
-class _ReencodedSequences:
-    """Baseline: batched like `_CachedSequences`, but every turn re-encodes the whole history."""
+class HistorySequences:
+    """A backend that keeps each sequence's ids and resubmits the whole history every turn.
 
-    def __init__(self, decoder: HFDecoder):
-        self.decoder = decoder
+    `continue_prompts(prompts, caps)` continues whole token sequences; vLLM's prefix cache makes this
+    cheap there, while for HF it is the re-encoding baseline.
+    """
+
+    def __init__(
+        self,
+        continue_prompts: Callable[[list[list[int]], list[int]], list[Continuation]],
+        stop_ids: list[int],
+        max_length: int,
+    ):
+        self.continue_prompts, self.stop_ids, self.max_length = continue_prompts, stop_ids, max_length
         self.history: dict[int, list[int]] = {}
 
     def release(self, keys: Iterable[int]) -> None:
@@ -502,56 +538,17 @@ class _ReencodedSequences:
             self.history.pop(key, None)
 
     def continue_sequences(self, requests: dict[int, Request]) -> dict[int, Continuation]:
-        dec = self.decoder
         results: dict[int, Continuation] = {}
         keys = []
         for key, req in requests.items():
-            self.history[key] = self.history.get(key, []) + list(req.ids)
-            if len(self.history[key]) >= dec.max_length:
-                results[key] = Continuation([], "error", context_error(len(self.history[key]), dec.max_length))
+            history = self.history[key] = self.history.get(key, []) + list(req.ids)
+            if len(history) >= self.max_length:
+                results[key] = Continuation([], "error", context_error(len(history), self.max_length))
             else:
                 keys.append(key)
         if keys:
-            rows, logits = dec._prefill(None, [self.history[k] for k in keys])
-            decoded, _ = dec._decode(rows, logits, [requests[k].max_new_tokens for k in keys], keep=False)
-            for key, out in zip(keys, decoded):
-                self.history[key] += out.ids + (dec.stop_ids if out.stop_reason == "turn_end" else [])
-                results[key] = Continuation(out.ids, out.stop_reason)
-        return results
-
-
-class _GenerateSequences:
-    """Baseline: one `model.generate` call per sequence and turn, re-encoding the history each time."""
-
-    def __init__(self, decoder: HFDecoder):
-        if len(decoder.stop_ids) != 1:
-            raise ValueError("the generate baseline needs a one-token turn end")
-        self.decoder = decoder
-        self.history: dict[int, list[int]] = {}
-
-    def release(self, keys: Iterable[int]) -> None:
-        for key in keys:
-            self.history.pop(key, None)
-
-    def continue_sequences(self, requests: dict[int, Request]) -> dict[int, Continuation]:
-        dec = self.decoder
-        results: dict[int, Continuation] = {}
-        for key, req in requests.items():
-            history = self.history.get(key, []) + list(req.ids)
-            self.history[key] = history
-            room = dec.max_length - len(history)
-            if room < 1:
-                results[key] = Continuation([], "error", context_error(len(history), dec.max_length))
-                continue
-            ids = torch.tensor([history], device=dec.model.device)
-            out = dec.model.generate(ids, attention_mask=torch.ones_like(ids), do_sample=False,
-                                     max_new_tokens=min(req.max_new_tokens, room), eos_token_id=dec.stop_ids[0],
-                                     pad_token_id=dec.pad_id)[0, len(history):].tolist()
-            if out[-1:] == dec.stop_ids:
-                reason, out = "turn_end", out[:-1]
-                self.history[key] += out + dec.stop_ids
-            else:
-                reason = "max_new_tokens" if len(out) >= req.max_new_tokens else "context"
-                self.history[key] += out
-            results[key] = Continuation(out, reason)
+            outs = self.continue_prompts([self.history[k] for k in keys], [requests[k].max_new_tokens for k in keys])
+            for key, out in zip(keys, outs):
+                self.history[key] += out.ids + (self.stop_ids if out.finished else [])
+                results[key] = out
         return results
