@@ -87,6 +87,7 @@ def _summary(values: list[int]) -> dict:
 def write_dataset(out_dir: str | Path, train: list[World], test: list[World], spec: TextSpec, train_max: tuple[int, int]) -> dict:
     """Write worlds, conversations and stats under ``out_dir``; return the summary (also written)."""
     out = Path(out_dir)
+    (out / "worlds").mkdir(parents=True, exist_ok=True)
     save_worlds(out / TRAIN_WORLDS, train)
     save_worlds(out / TEST_WORLDS, test)
     token_lengths: list[int] = []

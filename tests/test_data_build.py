@@ -1,0 +1,70 @@
+"""data-build: deterministic, byte-identical files; splits shared by all variants; disjoint train/test."""
+
+import json
+from types import SimpleNamespace
+
+import pytest
+
+from pipeline.data_build import (
+    TEST_CONVERSATIONS, TEST_WORLDS, TRAIN_CONVERSATIONS, TextSpec, build_splits, dataset_sha256, read_conversations,
+    write_dataset,
+)
+from pipeline.world import World, load_worlds
+
+PAPER_TEST = "../shared/data/paper_test_3000.jsonl"
+
+
+def _data(**overrides):
+    values = dict(train_size_x=[2, 4], train_size_y=[2, 4], test_size_x=[2, 5], test_size_y=[2, 5], frame=6,
+                  p_pit=[0.1, 0.5], n_train=40, n_test=10, test_file=None, seed=3, workers=1)
+    values.update(overrides)
+    return SimpleNamespace(**values)
+
+
+def test_same_config_gives_byte_identical_files(tmp_path):
+    spec = TextSpec.of("bwd", "marking-deadend", "optimal")
+    hashes = []
+    for name in ("a", "b"):
+        train, test = build_splits(_data(workers=1 if name == "a" else 2))
+        write_dataset(tmp_path / name, train, test, spec, (4, 4))
+        hashes.append(dataset_sha256(tmp_path / name))
+    assert hashes[0] == hashes[1]
+    other = build_splits(_data(seed=4))
+    assert [w.key() for w in other[1]] != [w.key() for w in build_splits(_data())[1]]
+
+
+def test_train_and_test_are_disjoint_and_sized():
+    train, test = build_splits(_data())
+    assert len(train) == 40 and len(test) == 10
+    assert not {w.key() for w in train} & {w.key() for w in test}
+    assert all(w.size_x <= 4 and w.size_y <= 4 for w in train)
+
+
+def test_every_variant_sees_the_same_worlds(tmp_path):
+    train, test = build_splits(_data())
+    for variant in ("marking-deadend", "no-all", "none", "cot"):
+        out = tmp_path / variant
+        write_dataset(out, train, test, TextSpec.of("fwd", variant, "optimal"), (4, 4))
+        assert [w.key() for w in load_worlds(out / TEST_WORLDS)] == [w.key() for w in test]
+        conversations = read_conversations(out / TRAIN_CONVERSATIONS)
+        assert len(conversations) == 40 and conversations[0][0]["from"] == "human"
+        golden = read_conversations(out / TEST_CONVERSATIONS)
+        assert golden[0][-1]["value"].startswith("Thought:" if variant != "none" else "Plan:")
+
+
+def test_direction_free_baselines_share_one_text_spec():
+    assert TextSpec.of("fwd", "none", "optimal") == TextSpec.of("bwd", "none", "optimal")
+    assert TextSpec.of("fwd", "dfs", "reachable") == TextSpec.of("bwd", "dfs", "reachable")
+    assert TextSpec.of("fwd", "cot", "optimal") != TextSpec.of("bwd", "cot", "optimal")
+
+
+def test_the_papers_test_file_can_be_the_test_split():
+    train, test = build_splits(_data(test_file=PAPER_TEST, n_test=25, n_train=5))
+    with open(PAPER_TEST) as handle:
+        first = [World.from_json(json.loads(next(handle))) for _ in range(25)]
+    assert test == first
+
+
+def test_asking_for_more_test_worlds_than_the_file_holds_names_the_limit():
+    with pytest.raises(ValueError, match="n_test=5000.*3000"):
+        build_splits(_data(test_file=PAPER_TEST, n_test=5000))
