@@ -77,29 +77,29 @@ def _grow_tree(rng: random.Random, size_x: int, size_y: int) -> bytearray | None
     n = size_x * size_y
     goal = n - 1
     tree = bytearray(n)
-    touching = bytearray(n)  # number of tree neighbours
-    listed = bytearray(n)  # ever put on the frontier list
+    # Tree neighbours per cell. A cell is put on the frontier list when this first becomes 1, so it
+    # is listed once; tree cells only ever go above 1, so they are never listed again.
+    touching = bytearray(n)
     neighbours = _neighbour_table(size_x, size_y)
     random_float = rng.random
     frontier = [0]
-    listed[0] = touching[0] = 1  # the start seeds the list as if it touched the tree once
+    touching[0] = 1  # the start seeds the list as if it touched the tree once
     while frontier:
         # Uniform pick (random() is several times cheaper than randrange in this hot loop);
         # stale entries, now touching two tree cells, are dropped lazily.
         k = int(random_float() * len(frontier))
-        frontier[k], frontier[-1] = frontier[-1], frontier[k]
-        i = frontier.pop()
+        i = frontier[k]
+        frontier[k] = frontier[-1]
+        frontier.pop()
         if touching[i] != 1:
             continue
         tree[i] = 1
         if i == goal:
             return tree
         for j in neighbours[i]:
-            if not tree[j]:
-                touching[j] += 1
-                if not listed[j]:
-                    listed[j] = 1
-                    frontier.append(j)
+            touching[j] += 1
+            if touching[j] == 1:
+                frontier.append(j)
         if touching[goal] > 1:
             return None
     return None

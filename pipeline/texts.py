@@ -155,11 +155,23 @@ def cognitive_map(
 
 def _padded_names(world: World) -> list[str]:
     """`cell_text` of every cell of the padded grid, by `World.index` (the map prints border cells too)."""
-    return [
-        cell_text((x, y))
-        for x in range(world.x0 - 1, world.x1 + 2)
-        for y in range(world.y0 - 1, world.y1 + 2)
-    ]
+    low, high = world.y0 - 1, world.y1 + 2
+    columns = range(world.x0 - 1, world.x1 + 2)
+    if low < _COLUMN_LOW or high > _COLUMN_HIGH:
+        return [cell_text((x, y)) for x in columns for y in range(low, high)]
+    names: list[str] = []
+    for x in columns:
+        names += _column_names(x)[low - _COLUMN_LOW : high - _COLUMN_LOW]
+    return names
+
+
+# Cell names are built once per column and sliced per world: a frame holds few distinct cells.
+_COLUMN_LOW, _COLUMN_HIGH = -1, 64
+
+
+@lru_cache(maxsize=None)
+def _column_names(x: int) -> tuple[str, ...]:
+    return tuple(cell_text((x, y)) for y in range(_COLUMN_LOW, _COLUMN_HIGH))
 
 
 def backtrack_lines(world: World, direction: str) -> list[str]:

@@ -7,8 +7,7 @@ from __future__ import annotations
 
 import json
 from collections import deque
-from dataclasses import dataclass
-from functools import cached_property
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable
 
@@ -28,6 +27,11 @@ _JSON_KEYS = (
     "gridstart_x",
     "gridstart_y",
 )
+
+
+# Codes in `World.padded`; any nonzero code blocks a move.
+_WALL, _PIT, _BORDER = 1, 2, 3
+_KINDS = {_WALL: "wall", _PIT: "pit", _BORDER: "border"}
 
 
 class WorldError(ValueError):
@@ -61,19 +65,26 @@ class World:
     pits: tuple[Cell, ...]
     start: Cell
     goal: Cell
+    # Derived once at construction (this runs for 50k+ worlds, and every text and score needs them):
+    # `padded` is the obstacle mask over the grid and a one-cell border, column-major (see `index`),
+    # nonzero for a wall, pit or border cell, so neighbour lookups need no bounds checks.
+    padded: bytes = field(init=False, repr=False, compare=False)
+    _path: tuple[Cell, ...] = field(init=False, repr=False, compare=False)
+    _moves: tuple[str, ...] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        self._validate_layout()
-        if self._path_count_and_parents[0] == 0:
+        object.__setattr__(self, "padded", self._build_mask())
+        paths, parent = self._count_shortest_paths()
+        if paths == 0:
             raise WorldError(f"goal {self.goal} is unreachable from start {self.start}")
-        if self._path_count_and_parents[0] > 1:
+        if paths > 1:
             raise WorldError(
                 f"more than one shortest path from {self.start} to {self.goal}; "
                 "a world must have exactly one"
             )
-        # Materialise the path now: it is needed by every text and score, and the BFS tables can go.
-        self.__dict__["_path"] = self._trace_path()
-        del self.__dict__["_path_count_and_parents"]
+        path, moves = self._trace_path(parent)
+        object.__setattr__(self, "_path", path)
+        object.__setattr__(self, "_moves", moves)
 
     @property
     def x1(self) -> int:
@@ -92,7 +103,13 @@ class World:
 
     def is_free(self, cell: Cell) -> bool:
         """Whether `cell` is inside the grid and neither a wall nor a pit."""
-        return self.in_grid(cell) and not self.padded[self.index(cell)]
+        # Inlined (not in_grid + index): this is the inner call of observations and walks.
+        dx, dy = cell[0] - self.x0, cell[1] - self.y0
+        return (
+            0 <= dx < self.size_x
+            and 0 <= dy < self.size_y
+            and not self.padded[(dx + 1) * (self.size_y + 2) + dy + 1]
+        )
 
     @property
     def stride(self) -> int:
@@ -113,29 +130,13 @@ class World:
         column, row = divmod(index, self.size_y + 2)
         return (column - 1 + self.x0, row - 1 + self.y0)
 
-    @cached_property
-    def padded(self) -> bytes:
-        """Blocked mask over the grid plus a one-cell border, column-major (see `index`).
-
-        1 marks a wall, a pit or a border cell, so neighbour lookups need no bounds checks;
-        graph searches over all worlds run on it.
-        """
-        stride = self.size_y + 2
-        mask = bytearray(b"\x01" * ((self.size_x + 2) * stride))
-        for column in range(1, self.size_x + 1):
-            mask[column * stride + 1 : column * stride + 1 + self.size_y] = bytes(self.size_y)
-        for cell in self.walls + self.pits:
-            mask[self.index(cell)] = 1
-        return bytes(mask)
-
     def shortest_path(self) -> list[Cell]:
         """The unique shortest path, start to goal inclusive."""
         return list(self._path)
 
     def optimal_moves(self) -> list[str]:
         """The moves along the unique shortest path."""
-        path = self._path
-        return [move_between(a, b) for a, b in zip(path, path[1:])]
+        return list(self._moves)
 
     def key(self) -> tuple:
         """Canonical identity for deduplication: obstacle order does not matter, positions do."""
@@ -188,30 +189,41 @@ class World:
             }
         }
 
-    def _validate_layout(self) -> None:
+    def _build_mask(self) -> bytes:
+        """Validate sizes and cell placement while building `padded` (codes: _WALL, _PIT, _BORDER)."""
         for name in ("size_x", "size_y"):
             if getattr(self, name) < 2:
                 raise WorldError(f"{name}={getattr(self, name)} is too small; allowed: 2 or more")
-        grid = f"({self.x0}, {self.y0})-({self.x1}, {self.y1})"
-        seen: dict[Cell, str] = {}
-        for kind, cells in (("wall", self.walls), ("pit", self.pits)):
+        size_x, size_y, x0, y0 = self.size_x, self.size_y, self.x0, self.y0
+        stride = size_y + 2
+        mask = bytearray([_BORDER]) * ((size_x + 2) * stride)
+        for column in range(1, size_x + 1):
+            mask[column * stride + 1 : column * stride + 1 + size_y] = bytes(size_y)
+        for code, cells in ((_WALL, self.walls), (_PIT, self.pits)):
             for cell in cells:
-                if not self.in_grid(cell):
-                    raise WorldError(f"{kind} {cell} is outside the grid {grid}")
-                if cell in seen:
-                    raise WorldError(f"{kind} {cell} duplicates a {seen[cell]}; each cell holds one obstacle")
-                seen[cell] = kind
+                dx, dy = cell[0] - x0, cell[1] - y0
+                if not (0 <= dx < size_x and 0 <= dy < size_y):
+                    raise WorldError(f"{_KINDS[code]} {cell} is outside the grid {self._grid_text()}")
+                i = (dx + 1) * stride + dy + 1
+                if mask[i]:
+                    raise WorldError(
+                        f"{_KINDS[code]} {cell} duplicates a {_KINDS[mask[i]]}; each cell holds one obstacle"
+                    )
+                mask[i] = code
         for name in ("start", "goal"):
             cell = getattr(self, name)
             if not self.in_grid(cell):
-                raise WorldError(f"{name} {cell} is outside the grid {grid}")
-            if cell in seen:
-                raise WorldError(f"{name} {cell} is on a {seen[cell]}; it must be a free cell")
+                raise WorldError(f"{name} {cell} is outside the grid {self._grid_text()}")
+            if mask[self.index(cell)]:
+                raise WorldError(f"{name} {cell} is on a {_KINDS[mask[self.index(cell)]]}; it must be a free cell")
         if self.start == self.goal:
             raise WorldError(f"start and goal are both {self.start}; they must differ")
+        return bytes(mask)
 
-    @cached_property
-    def _path_count_and_parents(self) -> tuple[int, list[int]]:
+    def _grid_text(self) -> str:
+        return f"({self.x0}, {self.y0})-({self.x1}, {self.y1})"
+
+    def _count_shortest_paths(self) -> tuple[int, list[int]]:
         """BFS from start over `padded`: number of shortest paths to the goal (capped at 2), parents."""
         blocked, offsets = self.padded, self.offsets()
         start, goal = self.index(self.start), self.index(self.goal)
@@ -236,13 +248,19 @@ class World:
                     count[j] = min(2, count[j] + count[i])
         return count[goal], parent
 
-    def _trace_path(self) -> tuple[Cell, ...]:
-        parent = self._path_count_and_parents[1]
-        path = [self.index(self.goal)]
+    def _trace_path(self, parent: list[int]) -> tuple[tuple[Cell, ...], tuple[str, ...]]:
+        """Path cells and moves, start to goal, from the BFS parents."""
+        move_of_offset = dict(zip(self.offsets(), MOVES))
+        indices = [self.index(self.goal)]
         start = self.index(self.start)
-        while path[-1] != start:
-            path.append(parent[path[-1]])
-        return tuple(self.cell_at(i) for i in reversed(path))
+        while indices[-1] != start:
+            indices.append(parent[indices[-1]])
+        indices.reverse()
+        moves = tuple(move_of_offset[b - a] for a, b in zip(indices, indices[1:]))
+        cells = [self.start]
+        for move in moves:
+            cells.append(step(cells[-1], move))
+        return tuple(cells), moves
 
 
 def _short(value: Any) -> str:
