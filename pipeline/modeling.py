@@ -1,0 +1,153 @@
+"""Models and tokenizers: a small Llama built from scratch for CPU runs, or a pretrained one loaded from disk.
+
+Loading is safetensors-only and never runs a model repository's own code unless asked, so a model directory
+cannot execute anything by being opened. A directory that is missing or broken raises `ModelLoadError`
+naming the path and what was expected, instead of a deep library traceback.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict
+from pathlib import Path
+from typing import Iterable
+
+import torch
+from transformers import (
+    AutoModelForCausalLM,
+    AutoTokenizer,
+    LlamaConfig,
+    LlamaForCausalLM,
+    PreTrainedModel,
+    PreTrainedTokenizerBase,
+)
+
+from pipeline.chat import ChatFormat
+
+CHAT_FORMAT_FILE = "chat_format.json"
+DTYPES = ("float32", "bfloat16", "float16")
+_EXPECTED_MODEL = "a local transformers model directory with config.json and *.safetensors weights"
+_EXPECTED_TOKENIZER = "a local tokenizer directory (tokenizer.json or the files of a saved tokenizer)"
+
+
+class ModelLoadError(ValueError):
+    """A model or tokenizer directory that is missing, incomplete or unreadable."""
+
+
+def build_scratch_model(
+    tokenizer: PreTrainedTokenizerBase,
+    *,
+    hidden_size: int = 128,
+    num_layers: int = 4,
+    num_heads: int = 4,
+    intermediate_size: int = 512,
+    max_length: int = 2048,
+    seed: int = 0,
+) -> LlamaForCausalLM:
+    """A randomly initialised fp32 Llama sized for ``tokenizer``; the same seed gives the same weights.
+
+    The global torch RNG is left as it was, so building a model does not shift later random draws.
+    """
+    if hidden_size % num_heads:
+        raise ValueError(f"hidden_size={hidden_size} must be a multiple of num_heads={num_heads}")
+    config = LlamaConfig(
+        vocab_size=len(tokenizer),
+        hidden_size=hidden_size,
+        num_hidden_layers=num_layers,
+        num_attention_heads=num_heads,
+        num_key_value_heads=num_heads,
+        intermediate_size=intermediate_size,
+        max_position_embeddings=max_length,
+        pad_token_id=tokenizer.pad_token_id,
+        bos_token_id=tokenizer.bos_token_id,
+        eos_token_id=tokenizer.eos_token_id,
+        tie_word_embeddings=True,
+        attn_implementation="sdpa",
+    )
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        model = LlamaForCausalLM(config)
+    return model.to(torch.float32)
+
+
+def _torch_dtype(dtype: str) -> torch.dtype:
+    if dtype not in DTYPES:
+        raise ValueError(f"dtype={dtype!r} is not supported; allowed: {', '.join(DTYPES)}")
+    return getattr(torch, dtype)
+
+
+def _require_dir(path: Path, expected: str) -> None:
+    if not path.is_dir():
+        raise ModelLoadError(f"{path}: no such directory; expected {expected}")
+
+
+def load_model(path: str | Path, *, dtype: str = "float32", trust_remote_code: bool = False) -> PreTrainedModel:
+    """A causal LM from a local directory of safetensors weights (no pickle, no remote code unless asked)."""
+    torch_dtype = _torch_dtype(dtype)
+    path = Path(path)
+    _require_dir(path, _EXPECTED_MODEL)
+    if not (path / "config.json").is_file():
+        raise ModelLoadError(f"{path}: config.json is missing; expected {_EXPECTED_MODEL}")
+    if not any(path.glob("*.safetensors")):
+        raise ModelLoadError(f"{path}: no *.safetensors file; expected {_EXPECTED_MODEL}")
+    try:
+        return AutoModelForCausalLM.from_pretrained(
+            path, dtype=torch_dtype, use_safetensors=True, trust_remote_code=trust_remote_code,
+            local_files_only=True,
+        )
+    except Exception as exc:  # safetensors, json and torch each raise their own types for a broken file
+        raise ModelLoadError(f"{path}: cannot load the model ({type(exc).__name__}: {exc}); "
+                             f"expected {_EXPECTED_MODEL}") from exc
+
+
+def load_tokenizer(path: str | Path, *, trust_remote_code: bool = False) -> PreTrainedTokenizerBase:
+    """A tokenizer saved with ``save_pretrained`` in a local directory."""
+    path = Path(path)
+    _require_dir(path, _EXPECTED_TOKENIZER)
+    try:
+        return AutoTokenizer.from_pretrained(path, trust_remote_code=trust_remote_code, local_files_only=True)
+    except Exception as exc:
+        raise ModelLoadError(f"{path}: cannot load the tokenizer ({type(exc).__name__}: {exc}); "
+                             f"expected {_EXPECTED_TOKENIZER}") from exc
+
+
+def save_chat_format(fmt: ChatFormat, model_dir: str | Path) -> Path:
+    """Write the chat format next to a saved model, so a decoder encodes prompts as training did."""
+    target = Path(model_dir) / CHAT_FORMAT_FILE
+    target.write_text(json.dumps(asdict(fmt), indent=2) + "\n")
+    return target
+
+
+def load_chat_format(model_dir: str | Path) -> ChatFormat:
+    """The chat format saved with a model by `save_chat_format`."""
+    source = Path(model_dir) / CHAT_FORMAT_FILE
+    if not source.is_file():
+        raise ModelLoadError(f"{model_dir}: {CHAT_FORMAT_FILE} is missing; expected a model saved by finetune")
+    return ChatFormat(**json.loads(source.read_text()))
+
+
+def count_parameters(model: torch.nn.Module) -> int:
+    """Number of distinct parameters (a tied embedding counts once)."""
+    return sum(p.numel() for p in model.parameters())
+
+
+def matmul_parameters(model: PreTrainedModel) -> int:
+    """Parameters that take part in a matmul per token: all but an untied input embedding (a lookup)."""
+    n = count_parameters(model)
+    if not model.config.tie_word_embeddings:
+        n -= model.get_input_embeddings().weight.numel()
+    return n
+
+
+def training_flops_per_token(model: PreTrainedModel, context: float) -> float:
+    """Forward+backward FLOPs per token: ``6 N`` for the weights plus ``12 * layers * hidden * context`` for
+    attention (QK^T and AV, 2 FLOPs per multiply-add, backward twice forward), where ``context`` is the mean
+    number of keys a query attends to ((L+1)/2 for a causal sequence of length L)."""
+    config = model.config
+    attention = 12 * config.num_hidden_layers * config.hidden_size * context
+    return 6 * matmul_parameters(model) + attention
+
+
+def training_flops(model: PreTrainedModel, lengths: Iterable[int]) -> float:
+    """Useful forward+backward FLOPs of training on causal sequences of these lengths (padding excluded)."""
+    return sum(length * training_flops_per_token(model, (length + 1) / 2) for length in lengths)

@@ -1,0 +1,104 @@
+import pytest
+import torch
+
+from pipeline.chat import WORD_LEVEL_FORMAT, ChatFormat
+from pipeline.modeling import (
+    ModelLoadError,
+    build_scratch_model,
+    count_parameters,
+    load_chat_format,
+    load_model,
+    load_tokenizer,
+    save_chat_format,
+    training_flops,
+    training_flops_per_token,
+)
+from pipeline.tokenizer import build_word_tokenizer
+
+TINY = dict(hidden_size=32, num_layers=2, num_heads=2, intermediate_size=64, max_length=256)
+
+
+@pytest.fixture(scope="module")
+def tokenizer():
+    return build_word_tokenizer(["Grid is from (0, 0) to (3, 2). Goal: (3, 2)\nThought:\nStep 1:\nup\nPlan:"])
+
+
+def test_scratch_model_is_sized_for_the_tokenizer(tokenizer):
+    model = build_scratch_model(tokenizer, **TINY)
+    assert model.config.vocab_size == len(tokenizer)
+    assert (model.config.pad_token_id, model.config.bos_token_id, model.config.eos_token_id) == (
+        tokenizer.pad_token_id, tokenizer.bos_token_id, tokenizer.eos_token_id)
+    assert model.dtype == torch.float32
+    assert model.config._attn_implementation == "sdpa"
+
+
+def test_scratch_model_is_deterministic_and_keeps_the_global_rng(tokenizer):
+    state = torch.random.get_rng_state()
+    a = build_scratch_model(tokenizer, **TINY, seed=1)
+    assert torch.equal(torch.random.get_rng_state(), state)
+    b = build_scratch_model(tokenizer, **TINY, seed=1)
+    c = build_scratch_model(tokenizer, **TINY, seed=2)
+    assert all(torch.equal(x, y) for x, y in zip(a.parameters(), b.parameters()))
+    assert not torch.equal(a.model.layers[0].mlp.up_proj.weight, c.model.layers[0].mlp.up_proj.weight)
+
+
+def test_heads_must_divide_hidden(tokenizer):
+    with pytest.raises(ValueError, match="num_heads"):
+        build_scratch_model(tokenizer, hidden_size=30, num_heads=4)
+
+
+def test_save_and_load_round_trip(tokenizer, tmp_path):
+    model = build_scratch_model(tokenizer, **TINY)
+    model.save_pretrained(tmp_path)
+    tokenizer.save_pretrained(tmp_path)
+    loaded, loaded_tok = load_model(tmp_path), load_tokenizer(tmp_path)
+    assert all(torch.equal(x, y) for x, y in zip(model.state_dict().values(), loaded.state_dict().values()))
+    text = "Grid is from (0, 0) to (3, 2)."
+    assert loaded_tok.encode(text, add_special_tokens=False) == tokenizer.encode(text, add_special_tokens=False)
+    assert loaded_tok.pad_token_id == tokenizer.pad_token_id
+
+
+def test_missing_model_dir_names_the_path(tmp_path):
+    missing = tmp_path / "nowhere"
+    with pytest.raises(ModelLoadError, match="nowhere.*no such directory.*safetensors"):
+        load_model(missing)
+    with pytest.raises(ModelLoadError, match="nowhere"):
+        load_tokenizer(missing)
+
+
+def test_dir_without_weights_is_refused(tokenizer, tmp_path):
+    build_scratch_model(tokenizer, **TINY).config.save_pretrained(tmp_path)
+    with pytest.raises(ModelLoadError, match="no \\*.safetensors"):
+        load_model(tmp_path)
+
+
+@pytest.mark.parametrize("damage", ["truncate", "garbage"])
+def test_corrupt_safetensors_is_a_model_load_error(tokenizer, tmp_path, damage):
+    build_scratch_model(tokenizer, **TINY).save_pretrained(tmp_path)
+    weights = tmp_path / "model.safetensors"
+    data = weights.read_bytes()
+    weights.write_bytes(data[: len(data) // 2] if damage == "truncate" else b"\x00garbage" * 64)
+    with pytest.raises(ModelLoadError, match=str(tmp_path)):
+        load_model(tmp_path)
+
+
+def test_unknown_dtype_is_refused(tmp_path):
+    with pytest.raises(ValueError, match="float64.*allowed: float32"):
+        load_model(tmp_path, dtype="float64")
+
+
+def test_chat_format_round_trip(tmp_path):
+    fmt = ChatFormat(human_prefix="<|user|>", gpt_prefix="<|assistant|>", turn_end="<|eot|>", bos="")
+    save_chat_format(fmt, tmp_path)
+    assert load_chat_format(tmp_path) == fmt
+    save_chat_format(WORD_LEVEL_FORMAT, tmp_path)
+    assert load_chat_format(tmp_path) == WORD_LEVEL_FORMAT
+
+
+def test_flops_count_weights_and_causal_attention(tokenizer):
+    model = build_scratch_model(tokenizer, **TINY)
+    n = count_parameters(model)  # tied embeddings: the output head is a matmul over the shared matrix
+    assert n == sum(p.numel() for p in model.parameters())
+    assert training_flops_per_token(model, 0) == 6 * n
+    assert training_flops_per_token(model, 10) == 6 * n + 12 * 2 * 32 * 10
+    assert training_flops(model, [3]) == 3 * training_flops_per_token(model, 2)
