@@ -31,7 +31,7 @@ _JSON_KEYS = (
 
 # Codes in `World.padded`; any nonzero code blocks a move.
 _WALL, _PIT, _BORDER = 1, 2, 3
-_KINDS = {_WALL: "wall", _PIT: "pit", _BORDER: "border"}
+_KINDS = {_WALL: "wall", _PIT: "pit"}
 
 
 class WorldError(ValueError):
@@ -40,7 +40,10 @@ class WorldError(ValueError):
 
 def step(cell: Cell, move: str) -> Cell:
     """The cell reached from `cell` by `move` (no bounds check)."""
-    dx, dy = MOVES[move]
+    try:
+        dx, dy = MOVES[move]
+    except KeyError:
+        raise ValueError(f"unknown move {move!r}; allowed: {', '.join(MOVES)}") from None
     return (cell[0] + dx, cell[1] + dy)
 
 
@@ -111,11 +114,6 @@ class World:
             and not self.padded[(dx + 1) * (self.size_y + 2) + dy + 1]
         )
 
-    @property
-    def stride(self) -> int:
-        """Index step of one column in `padded`; the neighbour offsets are +1, -1, -stride, +stride."""
-        return self.size_y + 2
-
     def offsets(self) -> tuple[int, int, int, int]:
         """Index offsets of the up, down, left, right neighbours in `padded` (the MOVES order)."""
         stride = self.size_y + 2
@@ -124,11 +122,6 @@ class World:
     def index(self, cell: Cell) -> int:
         """Position of `cell` (inside the grid or its one-cell border) in `padded`."""
         return (cell[0] - self.x0 + 1) * (self.size_y + 2) + cell[1] - self.y0 + 1
-
-    def cell_at(self, index: int) -> Cell:
-        """Inverse of `index`."""
-        column, row = divmod(index, self.size_y + 2)
-        return (column - 1 + self.x0, row - 1 + self.y0)
 
     def shortest_path(self) -> list[Cell]:
         """The unique shortest path, start to goal inclusive."""

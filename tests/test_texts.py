@@ -180,3 +180,16 @@ def test_map_lists_every_cell_once_as_new(world):
         last_step = lines[max(i for i, line in enumerate(lines) if line.startswith("Step ")) :]
         assert f"({target[0]}, {target[1]})" in last_step
         assert f"({target[0]}, {target[1]})" not in lines[: -len(last_step)]
+
+
+@pytest.mark.parametrize("offset", [(-3, -5), (40, 70)])
+def test_maps_anywhere_in_the_plane(example_world, offset):
+    """Coordinates outside the 20 x 20 frame still render: the text is the example's, shifted."""
+    dx, dy = offset
+    shift = lambda c: (c[0] + dx, c[1] + dy)  # noqa: E731
+    moved = World(4, 3, dx, dy, tuple(map(shift, example_world.walls)), tuple(map(shift, example_world.pits)),
+                  shift(example_world.start), shift(example_world.goal))
+    lines = answer(moved, "fwd", "marking-deadend", "optimal").split("\n")
+    golden = answer(example_world, "fwd", "marking-deadend", "optimal").split("\n")
+    assert len(lines) == len(golden)
+    assert lines[2] == f"({dx}, {dy + 1})" and lines[4] == f"({dx}, {dy - 1})"

@@ -186,3 +186,14 @@ def test_generated_worlds_have_exactly_one_shortest_path(world):
 @given(worlds())
 def test_json_round_trip(world):
     assert World.from_json(json.loads(json.dumps(world.to_json()))) == world
+
+
+def test_step_and_move_between():
+    from pipeline.world import move_between, step
+
+    assert step((2, 3), "left") == (1, 3)
+    assert move_between((2, 3), (2, 4)) == "up"
+    with pytest.raises(ValueError, match="unknown move 'north'; allowed: up, down, left, right"):
+        step((0, 0), "north")
+    with pytest.raises(ValueError, match="not neighbours"):
+        move_between((0, 0), (1, 1))
