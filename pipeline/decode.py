@@ -35,7 +35,8 @@ MoveChooser = Callable[[str, str], "str | None"]
 
 @dataclass(frozen=True)
 class Generation:
-    """One optimal-setting answer. `finished`: it ended with the turn-end ids (not included in `text`)."""
+    """One optimal-setting answer. `finished`: it ended with the turn-end ids, which `text` leaves out and
+    `n_tokens` (the tokens generated) counts."""
 
     text: str
     n_tokens: int
@@ -91,9 +92,15 @@ class Continuation:
     stop_reason: StopReason
     error: str | None = None
 
+    n_stop: int = 0  # the turn-end ids generated after `ids`
+
     @property
     def finished(self) -> bool:
         return self.stop_reason == "turn_end"
+
+    @property
+    def n_tokens(self) -> int:
+        return len(self.ids) + self.n_stop
 
 
 class SequenceBackend(Protocol):
@@ -111,7 +118,7 @@ class SequenceBackend(Protocol):
 def generation(tokenizer: TextTokenizer, out: Continuation) -> Generation:
     """A continuation as an optimal-setting answer."""
     text = tokenizer.decode(out.ids, skip_special_tokens=False)
-    return Generation(text, len(out.ids), out.finished, out.stop_reason, out.error)
+    return Generation(text, out.n_tokens, out.finished, out.stop_reason, out.error)
 
 
 def context_error(n_tokens: int, max_length: int) -> str:
@@ -169,12 +176,11 @@ def play_episodes(
             on_episode(result)
 
     while True:
-        for index, world in pending_worlds:
+        while len(live) < batch_size and (item := next(pending_worlds, None)) is not None:
+            index, world = item
             env = GridEnv(world, max_steps=max_steps)
             live[index] = _Episode(index, env, env.reset())
             requests[index] = Request(encode_prompt(tokenizer, fmt, prompt_turns(world)), max_new_tokens)
-            if len(live) >= batch_size:
-                break
         if not live:
             break
         continuations = backend.continue_sequences(requests)
@@ -182,7 +188,7 @@ def play_episodes(
         ended = []
         for key, cont in continuations.items():
             episode = live[key]
-            episode.n_tokens += len(cont.ids)
+            episode.n_tokens += cont.n_tokens
             if cont.error is not None or cont.stop_reason == "context":
                 if cont.ids:
                     episode.answers.append(tokenizer.decode(cont.ids, skip_special_tokens=False))
@@ -287,12 +293,6 @@ class _Rows:
         return _Rows(DynamicCache(layers, config=config), mask, lengths)
 
 
-@dataclass
-class _Decoded:
-    ids: list[int]
-    stop_reason: StopReason
-
-
 class HFDecoder:
     """Greedy decoding with a transformers causal LM (full-attention layers), batched with a KV cache.
 
@@ -387,8 +387,7 @@ class HFDecoder:
     def _continue_batch(self, prompts: list[list[int]], caps: list[int]) -> list[Continuation]:
         """Whole prompts (each shorter than max_length) continued as one batch, no cache kept."""
         rows, logits = self._prefill(None, prompts)
-        decoded, _ = self._decode(rows, logits, caps, keep=False)
-        return [Continuation(out.ids, out.stop_reason) for out in decoded]
+        return self._decode(rows, logits, caps, keep=False)[0]
 
     def _continue_one_by_one(self, prompts: list[list[int]], caps: list[int]) -> list[Continuation]:
         """Baseline: one `model.generate` call per prompt (a one-token turn end)."""
@@ -402,7 +401,7 @@ class HFDecoder:
                                       max_new_tokens=min(cap, room), eos_token_id=self.stop_ids[0],
                                       pad_token_id=self.pad_id)[0, len(prompt):].tolist()
             if out[-1:] == self.stop_ids:
-                results.append(Continuation(out[:-1], "turn_end"))
+                results.append(Continuation(out[:-1], "turn_end", n_stop=1))
             else:
                 results.append(Continuation(out, "max_new_tokens" if len(out) >= cap else "context"))
         return results
@@ -414,7 +413,7 @@ class HFDecoder:
 
     def _decode(
         self, rows: _Rows, logits: torch.Tensor, caps: Sequence[int], *, keep: bool
-    ) -> tuple[list[_Decoded], tuple[_Rows, list[int]] | None]:
+    ) -> tuple[list[Continuation], tuple[_Rows, list[int]] | None]:
         """Decode greedily from `logits` until every row stopped; a row leaves the batch when it stops.
 
         With `keep`, the stopped rows are merged back (compacted) and returned with their order (row
@@ -454,7 +453,7 @@ class HFDecoder:
                 tokens = [tokens[j] for j in going]
             logits = rows.step(self.model, tokens)
         decoded = [
-            _Decoded(ids[:-n_stop] if reason == "turn_end" else ids, reason)
+            Continuation(ids[:-n_stop], reason, n_stop=n_stop) if reason == "turn_end" else Continuation(ids, reason)
             for ids, reason in zip(generated, reasons)
         ]
         kept = (_Rows.merge(parked, config), parked_order) if keep else None
@@ -513,7 +512,7 @@ class _CachedSequences:
         for key, out in zip(keys, decoded):
             # The last generated token is not in the cache yet; it leads the next chunk.
             self.unfed[key] = dec.stop_ids[-1:] if out.stop_reason == "turn_end" else out.ids[-1:]
-            results[key] = Continuation(out.ids, out.stop_reason)
+            results[key] = out
         return results
 
 

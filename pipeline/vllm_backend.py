@@ -108,7 +108,7 @@ class VLLMDecoder:
             ids = list(completion.token_ids)
             if completion.finish_reason == "stop":
                 # Whether vLLM keeps the stop token in token_ids has varied across versions.
-                results.append(Continuation(ids[:-1] if ids[-1:] == self.stop_ids else ids, "turn_end"))
+                results.append(Continuation(ids[:-1] if ids[-1:] == self.stop_ids else ids, "turn_end", n_stop=1))
             else:
                 full = len(prompt) + len(ids) >= self.max_length
                 results.append(Continuation(ids, "context" if full and len(ids) < cap else "max_new_tokens"))
