@@ -132,7 +132,7 @@ class StoreData:
 
     experiment: str
     jobs: list[Job]
-    episodes: pd.DataFrame          # EPISODE_FIELDS + JOB_COLUMNS + job_run_id, eval_run_id
+    episodes: pd.DataFrame          # EPISODE_FIELDS (less moves) + JOB_COLUMNS + job/eval run ids
     curves: pd.DataFrame            # JOB_COLUMNS + job_run_id, step, value (curve_success_rate)
     losses: pd.DataFrame            # JOB_COLUMNS + finetune_run_id, step, value (training loss)
     notes: list[str] = field(default_factory=list)
@@ -239,7 +239,7 @@ def read_episodes(client, run_id: str, scratch: Path) -> pd.DataFrame:
     for name in ("size_x", "size_y", "optimal_length", "n_moves", "map_first_error"):
         frame[name] = pd.to_numeric(frame[name], errors="coerce")
     frame["outcome"] = frame["outcome"].astype("string").str.lower()
-    return frame
+    return frame.drop(columns=["moves"])  # the report never reads the move lists
 
 
 def _history(client, run_id: str, key: str) -> pd.DataFrame:
@@ -280,7 +280,8 @@ def load_store(tracking_uri: str, experiment: str) -> StoreData:
                 loss = _history(client, job.finetune_run_id, LOSS_METRIC)
                 if len(loss):
                     losses.append(loss.assign(**cell, finetune_run_id=job.finetune_run_id))
-    episode_columns = [*EPISODE_FIELDS, *JOB_COLUMNS, "job_run_id", "eval_run_id"]
+    episode_columns = [*(f for f in EPISODE_FIELDS if f != "moves"), *JOB_COLUMNS, "job_run_id",
+                       "eval_run_id"]
     return StoreData(
         experiment=experiment,
         jobs=jobs,
@@ -313,9 +314,23 @@ def paper_success(mode: str, variant: str, direction: str) -> float:
     return pair[0] if pair[0] == pair[1] else math.nan  # direction-independent rows only
 
 
-def _cell(episodes: pd.DataFrame, mode: str, direction: str, variant: str) -> pd.DataFrame:
-    return episodes[(episodes["mode"] == mode) & (episodes["direction"] == direction)
-                    & (episodes["variant"] == variant)]
+class Cells:
+    """The episodes grouped by job cell (mode, direction, variant); a cell that did not run is empty."""
+
+    def __init__(self, episodes: pd.DataFrame) -> None:
+        self.episodes = episodes
+        self.directions = directions_of(episodes)
+        self._groups = dict(iter(episodes.groupby(["mode", "direction", "variant"], sort=False)))
+        self._empty = episodes.iloc[0:0]
+
+    def __call__(self, mode: str, direction: str, variant: str) -> pd.DataFrame:
+        return self._groups.get((mode, direction, variant), self._empty)
+
+    def present(self, mode: str) -> list[tuple[str, str]]:
+        """The (direction, variant) cells that ran in ``mode``, in table order."""
+        order = {v: i for i, v in enumerate(VARIANTS)}
+        return sorted(((d, v) for m, d, v in self._groups if m == mode),
+                      key=lambda dv: (_index(DIRECTIONS, dv[0]), dv[0], order.get(dv[1], 99), dv[1]))
 
 
 def _subset(frame: pd.DataFrame, subset: str) -> pd.DataFrame:
@@ -343,14 +358,14 @@ def rate_stats(frame: pd.DataFrame, ran: bool) -> dict:
             "seed_sd": rate.seed_sd}
 
 
-def success_table(episodes: pd.DataFrame, variants: Iterable[str]) -> pd.DataFrame:
+def success_table(cells: Cells, variants: Iterable[str]) -> pd.DataFrame:
     """Long table: one row per subset x mode x direction x variant with our rate and the paper's."""
     rows = []
     for subset in SUBSETS:
         for mode in MODES:
-            for direction in directions_of(episodes):
+            for direction in cells.directions:
                 for variant in variants:
-                    cell = _cell(episodes, mode, direction, variant)
+                    cell = cells(mode, direction, variant)
                     rows.append({
                         "subset": subset, "mode": mode, "direction": direction, "variant": variant,
                         "paper_row": PAPER_ROWS.get(variant, variant),
@@ -361,24 +376,23 @@ def success_table(episodes: pd.DataFrame, variants: Iterable[str]) -> pd.DataFra
     return pd.DataFrame(rows)
 
 
-def table3(episodes: pd.DataFrame) -> pd.DataFrame:
+def table3(cells: Cells) -> pd.DataFrame:
     """Table 3 (reachable): the paper's cognitive map (BWD marking-deadend), our best map, and DFS."""
-    reach = episodes[episodes["mode"] == "reachable"]
     entries = [("cognitive map (BWD MARKING deadend)", "bwd", REFERENCE_VARIANT)]
-    ranked = [(rate_stats(_cell(reach, "reachable", d, v), True)["rate"], d, v)
-              for d in directions_of(reach) for v in MAP_VARIANTS
-              if len(_cell(reach, "reachable", d, v))]
+    ranked = [(rate_stats(cells("reachable", d, v), True)["rate"], d, v)
+              for d in cells.directions for v in MAP_VARIANTS
+              if len(cells("reachable", d, v))]
     if ranked:
         _, d, v = max(ranked)
         if (d, v) != ("bwd", REFERENCE_VARIANT):
             entries.append((f"best cognitive map of ours ({d.upper()} {PAPER_ROWS[v]})", d, v))
-    dfs_directions = [d for d in directions_of(reach) if len(_cell(reach, "reachable", d, "dfs"))]
+    dfs_directions = [d for d in cells.directions if len(cells("reachable", d, "dfs"))]
     entries += [(f"DFS exploration ({d.upper()} run)", d, "dfs") for d in dfs_directions] or [
         ("DFS exploration", "bwd", "dfs")]
     rows = []
     for subset in SUBSETS:
         for label, direction, variant in entries:
-            cell = _cell(reach, "reachable", direction, variant)
+            cell = cells("reachable", direction, variant)
             part = _subset(cell, subset)
             won = part[part["success"]]
             rows.append({
@@ -393,14 +407,14 @@ def table3(episodes: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def _paired(episodes: pd.DataFrame, mode: str, direction: str, variant: str, reference: str,
+def _paired(cells: Cells, mode: str, direction: str, variant: str, reference: str,
             subset: str) -> tuple[pd.DataFrame, list[str]]:
     """Outcomes of ``variant`` and ``reference`` on shared (seed, world) pairs.
 
     Shared seeds are paired seed by seed; with no seed in common, the lowest seed of each is paired.
     """
-    a = _subset(_cell(episodes, mode, direction, variant), subset)
-    b = _subset(_cell(episodes, mode, direction, reference), subset)
+    a = _subset(cells(mode, direction, variant), subset)
+    b = _subset(cells(mode, direction, reference), subset)
     seeds = sorted(set(a["seed"]) & set(b["seed"]), key=_seed_key)
     if seeds:
         a, b = a[a["seed"].isin(seeds)], b[b["seed"].isin(seeds)]
@@ -414,18 +428,18 @@ def _paired(episodes: pd.DataFrame, mode: str, direction: str, variant: str, ref
     return merged, seeds
 
 
-def mcnemar_table(episodes: pd.DataFrame) -> pd.DataFrame:
+def mcnemar_table(cells: Cells) -> pd.DataFrame:
     """Each variant against its direction's marking-deadend (same mode), paired on shared test worlds."""
     rows = []
     for subset in SUBSETS:
         for mode in MODES:
-            for direction in directions_of(episodes):
-                if not len(_cell(episodes, mode, direction, REFERENCE_VARIANT)):
+            for direction in cells.directions:
+                if not len(cells(mode, direction, REFERENCE_VARIANT)):
                     continue
                 for variant in VARIANTS:
-                    if variant == REFERENCE_VARIANT or not len(_cell(episodes, mode, direction, variant)):
+                    if variant == REFERENCE_VARIANT or not len(cells(mode, direction, variant)):
                         continue
-                    pairs, seeds = _paired(episodes, mode, direction, variant, REFERENCE_VARIANT,
+                    pairs, seeds = _paired(cells, mode, direction, variant, REFERENCE_VARIANT,
                                            subset)
                     test = mcnemar(pairs["success_a"].tolist(), pairs["success_b"].tolist())
                     n = test.n_pairs
@@ -444,19 +458,12 @@ def mcnemar_table(episodes: pd.DataFrame) -> pd.DataFrame:
         "rate_reference", "only_variant", "only_reference", "both", "neither", "p_value"])
 
 
-def _job_cells(episodes: pd.DataFrame, mode: str) -> list[tuple[str, str]]:
-    present = episodes[episodes["mode"] == mode][["direction", "variant"]].drop_duplicates()
-    order = {v: i for i, v in enumerate(VARIANTS)}
-    return sorted(present.itertuples(index=False, name=None),
-                  key=lambda dv: (_index(DIRECTIONS, dv[0]), dv[0], order.get(dv[1], 99), dv[1]))
-
-
-def graded_table(episodes: pd.DataFrame) -> pd.DataFrame:
+def graded_table(cells: Cells) -> pd.DataFrame:
     """Optimal setting, graded (SPEC 4): parsed, valid, reaches goal, success, map exact, first map error."""
     rows = []
     for subset in SUBSETS:
-        for direction, variant in _job_cells(episodes, "optimal"):
-            part = _subset(_cell(episodes, "optimal", direction, variant), subset)
+        for direction, variant in cells.present("optimal"):
+            part = _subset(cells("optimal", direction, variant), subset)
             wrong = pd.to_numeric(part.loc[part["map_exact"] == False, "map_first_error"],  # noqa: E712
                                   errors="coerce").dropna()
             rows.append({
@@ -477,12 +484,12 @@ def graded_table(episodes: pd.DataFrame) -> pd.DataFrame:
 REACHABLE_OUTCOMES = ("success", "deadend", "max_step", "invalid", "error")
 
 
-def outcomes_table(episodes: pd.DataFrame) -> pd.DataFrame:
+def outcomes_table(cells: Cells) -> pd.DataFrame:
     """Reachable setting: the rate of each outcome per job cell, and moves over optimal on successes."""
     rows = []
     for subset in SUBSETS:
-        for direction, variant in _job_cells(episodes, "reachable"):
-            part = _subset(_cell(episodes, "reachable", direction, variant), subset)
+        for direction, variant in cells.present("reachable"):
+            part = _subset(cells("reachable", direction, variant), subset)
             won = part[part["success"]]
             rows.append({
                 "subset": subset, "direction": direction, "variant": variant, "n": len(part),
@@ -509,12 +516,12 @@ def jobs_table(jobs: list[Job]) -> pd.DataFrame:
 
 def compute_tables(data: StoreData) -> dict[str, pd.DataFrame]:
     """Every table of the report, in long form (the CSV files)."""
-    eps = data.episodes
-    tables = {key: success_table(eps, variants) for key, (_, variants) in SUCCESS_TABLES.items()}
-    tables["table3"] = table3(eps)
-    tables["mcnemar"] = mcnemar_table(eps)
-    tables["graded_optimal"] = graded_table(eps)
-    tables["outcomes_reachable"] = outcomes_table(eps)
+    cells = Cells(data.episodes)
+    tables = {key: success_table(cells, variants) for key, (_, variants) in SUCCESS_TABLES.items()}
+    tables["table3"] = table3(cells)
+    tables["mcnemar"] = mcnemar_table(cells)
+    tables["graded_optimal"] = graded_table(cells)
+    tables["outcomes_reachable"] = outcomes_table(cells)
     tables["jobs"] = jobs_table(data.jobs)
     return tables
 
@@ -657,14 +664,13 @@ def _figure3_jobs(direction: str, variant: str) -> bool:
     return variant in ("none", "cot") or (variant == REFERENCE_VARIANT and direction == "bwd")
 
 
-def figure4_map(episodes: pd.DataFrame) -> tuple[str, str] | None:
+def figure4_map(cells: Cells) -> tuple[str, str] | None:
     """The map shown in Figure 4: the paper's (BWD marking-deadend) if it ran, else our best map."""
-    reach = episodes[episodes["mode"] == "reachable"]
-    if len(_cell(reach, "reachable", "bwd", REFERENCE_VARIANT)):
+    if len(cells("reachable", "bwd", REFERENCE_VARIANT)):
         return ("bwd", REFERENCE_VARIANT)
-    ranked = [(rate_stats(_cell(reach, "reachable", d, v), True)["rate"], d, v)
-              for d in directions_of(reach) for v in MAP_VARIANTS
-              if len(_cell(reach, "reachable", d, v))]
+    ranked = [(rate_stats(cells("reachable", d, v), True)["rate"], d, v)
+              for d in cells.directions for v in MAP_VARIANTS
+              if len(cells("reachable", d, v))]
     return max(ranked)[1:] if ranked else None
 
 
@@ -673,7 +679,7 @@ def write_figures(data: StoreData, out: Path) -> tuple[list[Path], dict[str, pd.
     from pipeline import report_figures as figs
 
     paths = figs.size_heatmaps(data.episodes, out)
-    fig4, fits = figs.moves_vs_optimal(data.episodes, out, figure4_map(data.episodes))
+    fig4, fits = figs.moves_vs_optimal(data.episodes, out, figure4_map(Cells(data.episodes)))
     fig3 = figs.rapid_adaptation(data.curves, data.losses, out, keep=_figure3_jobs)
     paths += [p for p in (fig4, fig3) if p is not None]
     return paths, {"fig4_fits": fits}

@@ -323,11 +323,11 @@ def test_report_run_holds_the_files(built):
     assert figures == {f"figures/{p.name}" for p in result.paths if p.parent.name == "figures"}
 
 
-def test_rerun_ignores_report_runs(built, tmp_path):
+def test_report_runs_are_not_read_as_jobs(built):
     result, store = built
-    again = report.build_report(store.uri, "cogmap", tmp_path, log_run=False)
-    assert again.run_id is None
-    assert again.tables["table1"].equals(result.tables["table1"])
+    data = report.load_store(store.uri, "cogmap")
+    assert len(data.jobs) == len(result.tables["jobs"]) == 9
+    assert report.compute_tables(data)["table1"].equals(result.tables["table1"])
 
 
 # ---------------------------------------------------------------------------------- CLI and callback
@@ -364,5 +364,8 @@ def test_callback_logs_failures_as_warnings(tmp_path, caplog):
 
 
 def test_callback_builds_report(store, tmp_path):
-    report.ReportCallback(store.uri, "cogmap", str(tmp_path / "r")).on_multirun_end(config=None)
+    ensure_experiment(store.uri, "empty-too", str(tmp_path / "artifacts"))
+    report.ReportCallback(store.uri, "empty-too", str(tmp_path / "r")).on_multirun_end(config=None)
     assert (tmp_path / "r" / "report.md").stat().st_size > 0
+    runs = store.client.search_runs([store.client.get_experiment_by_name("empty-too").experiment_id])
+    assert [r.data.tags[KIND_TAG] for r in runs] == [REPORT_KIND]
