@@ -135,3 +135,18 @@ def test_world_stats_detour_needs_down():
     assert stats == WorldStats(
         size_x=5, size_y=3, optimal_length=10, dead_ends=0, up_right_only=False, interpolated=True
     )
+
+
+def test_generator_matches_the_paper_test_distribution(paper_worlds):
+    """Same recipe as the paper: our 2..20 worlds look like its released test set on every summary."""
+    ours = generate_worlds(600, seed=0, cfg=GeneratorConfig(size_x=(2, 20), size_y=(2, 20)), split="test")
+
+    def summary(ws: list[World]) -> tuple[float, float, float]:
+        cells = sum(w.size_x * w.size_y for w in ws)
+        free = 1 - sum(len(w.walls) + len(w.pits) for w in ws) / cells
+        pits = sum(len(w.pits) for w in ws) / sum(len(w.pits) + len(w.walls) for w in ws)
+        up_right = sum(world_stats(w).up_right_only for w in ws) / len(ws)
+        return free, pits, up_right
+
+    for ours_value, paper_value, tolerance in zip(summary(ours), summary(paper_worlds), (0.02, 0.03, 0.06)):
+        assert abs(ours_value - paper_value) < tolerance

@@ -11,7 +11,7 @@ from conftest import PAPER_TEST, worlds
 from hypothesis import given
 
 from pipeline.generate import world_stats
-from pipeline.world import MOVES, World, WorldError, load_worlds, save_worlds
+from pipeline.world import MOVES, World, WorldError, load_worlds, move_between, save_worlds, step
 
 
 def _json(**changes) -> dict:
@@ -189,8 +189,6 @@ def test_json_round_trip(world):
 
 
 def test_step_and_move_between():
-    from pipeline.world import move_between, step
-
     assert step((2, 3), "left") == (1, 3)
     assert move_between((2, 3), (2, 4)) == "up"
     with pytest.raises(ValueError, match="unknown move 'north'; allowed: up, down, left, right"):
