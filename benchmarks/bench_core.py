@@ -36,7 +36,7 @@ def _render_parallel(worlds: list[World], workers: int, chunk: int = 1000) -> in
 
 
 def _cpu_seconds() -> float:
-    """User+system CPU of this process and its finished children: the machine is shared, wall time is noisy."""
+    """User+system CPU of this process and its finished children (wall time is noisy on a shared box)."""
     own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
     return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
 
@@ -58,9 +58,16 @@ def main() -> None:
     n_train, n_test = 50_000 // scale, 3_000 // scale
 
     print("== single process ==")
-    worlds = _timed("generate 5000 train worlds (2..10)", partial(generate_worlds, 5000, 0, TRAIN_CFG), 5000, "worlds")
+    worlds = _timed(
+        "generate 5000 train worlds (2..10)", partial(generate_worlds, 5000, 0, TRAIN_CFG), 5000, "worlds"
+    )
     _timed("render 5000 train conversations (bwd marking)", partial(_render, worlds), 5000, "conv")
-    tests = _timed("generate 1000 test worlds (2..20)", partial(generate_worlds, 1000, 0, TEST_CFG, "test"), 1000, "worlds")
+    tests = _timed(
+        "generate 1000 test worlds (2..20)",
+        partial(generate_worlds, 1000, 0, TEST_CFG, "test"),
+        1000,
+        "worlds",
+    )
     _timed("render 1000 test conversations (bwd marking)", partial(_render, tests), 1000, "conv")
     paper = load_worlds(PAPER_TEST)
     _timed("render the 3000 paper test conversations", partial(_render, paper), 3000, "conv")
@@ -71,7 +78,9 @@ def main() -> None:
     start, cpu_start = time.perf_counter(), _cpu_seconds()
     test = generate_worlds(n_test, 0, TEST_CFG, "test", workers=args.workers)
     t_test = time.perf_counter()
-    train = generate_worlds(n_train, 0, TRAIN_CFG, "train", exclude={w.key() for w in test}, workers=args.workers)
+    train = generate_worlds(
+        n_train, 0, TRAIN_CFG, "train", exclude={w.key() for w in test}, workers=args.workers
+    )
     t_train = time.perf_counter()
     chars = _render_parallel(train + test, args.workers)
     end = time.perf_counter()

@@ -6,7 +6,7 @@ import multiprocessing
 import random
 from dataclasses import dataclass
 from itertools import count
-from typing import Iterator
+from collections.abc import Iterator
 
 from pipeline.world import MOVES, Cell, World
 

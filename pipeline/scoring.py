@@ -134,4 +134,3 @@ def _thought_of(world: World, direction: str, variant: str) -> list[str]:
     """The golden Thought section as the parser returns it: map lines up to Backtrack, no header."""
     lines = thought_lines(world, direction, variant)[1:]
     return lines[: lines.index("Backtrack:")] if "Backtrack:" in lines else lines
-

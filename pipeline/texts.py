@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import random
-from functools import lru_cache
+from functools import lru_cache, cache
 from typing import Literal, NamedTuple, get_args
 
 from pipeline.world import MOVES, Cell, World, move_between, step
@@ -169,7 +169,7 @@ def _padded_names(world: World) -> list[str]:
 _COLUMN_LOW, _COLUMN_HIGH = -1, 64
 
 
-@lru_cache(maxsize=None)
+@cache
 def _column_names(x: int) -> tuple[str, ...]:
     return tuple(cell_text((x, y)) for y in range(_COLUMN_LOW, _COLUMN_HIGH))
 
@@ -257,7 +257,9 @@ def _answer(world: World, direction: str, variant: str, mode: str, moves: list[s
     return "\n".join(thought_lines(world, direction, variant) + tail)
 
 
-def conversation(world: World, direction: str, variant: str, mode: str, seed: int = 0) -> list[dict[str, str]]:
+def conversation(
+    world: World, direction: str, variant: str, mode: str, seed: int = 0
+) -> list[dict[str, str]]:
     """The whole training conversation (SPEC 2): prompt, first answer and, when reachable, the walk."""
     _check(direction, variant, mode)
     moves = _moves(world, variant, seed)

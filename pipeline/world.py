@@ -9,7 +9,8 @@ import json
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
+from collections.abc import Iterable
 
 Cell = tuple[int, int]
 
@@ -82,8 +83,7 @@ class World:
             raise WorldError(f"goal {self.goal} is unreachable from start {self.start}")
         if paths > 1:
             raise WorldError(
-                f"more than one shortest path from {self.start} to {self.goal}; "
-                "a world must have exactly one"
+                f"more than one shortest path from {self.start} to {self.goal}; a world must have exactly one"
             )
         path, moves = self._trace_path(parent)
         object.__setattr__(self, "_path", path)
@@ -208,7 +208,9 @@ class World:
             if not self.in_grid(cell):
                 raise WorldError(f"{name} {cell} is outside the grid {self._grid_text()}")
             if mask[self.index(cell)]:
-                raise WorldError(f"{name} {cell} is on a {_KINDS[mask[self.index(cell)]]}; it must be a free cell")
+                raise WorldError(
+                    f"{name} {cell} is on a {_KINDS[mask[self.index(cell)]]}; it must be a free cell"
+                )
         if self.start == self.goal:
             raise WorldError(f"start and goal are both {self.start}; they must differ")
         return bytes(mask)

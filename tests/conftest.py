@@ -15,7 +15,9 @@ from pipeline.world import World, load_worlds
 PAPER_TEST = Path("/work/shared/data/paper_test_3000.jsonl")
 
 # World generation dominates example time; no deadline so a slow CI box does not flake.
-settings.register_profile("core", max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+settings.register_profile(
+    "core", max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow]
+)
 settings.load_profile("core")
 
 

@@ -95,7 +95,10 @@ def test_pits_only_and_walls_only():
 @given(worlds())
 def test_free_cells_form_a_tree(world):
     free = [
-        (x, y) for x in range(world.x0, world.x1 + 1) for y in range(world.y0, world.y1 + 1) if world.is_free((x, y))
+        (x, y)
+        for x in range(world.x0, world.x1 + 1)
+        for y in range(world.y0, world.y1 + 1)
+        if world.is_free((x, y))
     ]
     edges = sum(world.is_free((x + 1, y)) + world.is_free((x, y + 1)) for x, y in free)
     assert edges == len(free) - 1

@@ -8,7 +8,14 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from pipeline import conversation
-from pipeline.scoring import ParsedAnswer, PlanScore, first_difference, parse_action, parse_answer, score_optimal
+from pipeline.scoring import (
+    ParsedAnswer,
+    PlanScore,
+    first_difference,
+    parse_action,
+    parse_answer,
+    score_optimal,
+)
 from pipeline.texts import DIRECTIONS, MAP_VARIANTS, MODES, VARIANTS
 from pipeline.world import World
 
@@ -19,8 +26,23 @@ _EXAMPLE = World(4, 3, 0, 0, ((1, 1), (2, 2)), ((3, 0),), (0, 0), (3, 2))
 
 def test_parse_golden_sections(golden):
     parsed = parse_answer(golden["bwd_no_all"])
-    assert parsed.thought == ["Step 1:", "(3, 1)", "up", "Step 2:", "(2, 1)", "right", "Step 3:", "(2, 0)", "up",
-                              "Step 4:", "(1, 0)", "right", "Step 5:", "(0, 0)", "right"]
+    assert parsed.thought == [
+        "Step 1:",
+        "(3, 1)",
+        "up",
+        "Step 2:",
+        "(2, 1)",
+        "right",
+        "Step 3:",
+        "(2, 0)",
+        "up",
+        "Step 4:",
+        "(1, 0)",
+        "right",
+        "Step 5:",
+        "(0, 0)",
+        "right",
+    ]
     assert parsed.backtrack[:3] == ["(0, 0)", "right", "(1, 0)"] and parsed.backtrack[-1] == "(3, 2)"
     assert parsed.plan == ["right", "right", "up", "right", "up"]
     assert parsed.action is None
@@ -64,8 +86,14 @@ def test_parse_action(text, move):
 def test_golden_answers_score_optimal(example_world, golden):
     score = score_optimal(example_world, golden["fwd_marking_deadend"], "fwd", "marking-deadend")
     assert score == PlanScore(
-        parsed=True, valid=True, reaches_goal=True, optimal=True, map_exact=True,
-        map_first_error=None, plan_length=5, optimal_length=5,
+        parsed=True,
+        valid=True,
+        reaches_goal=True,
+        optimal=True,
+        map_exact=True,
+        map_first_error=None,
+        plan_length=5,
+        optimal_length=5,
     )
     assert score_optimal(example_world, golden["bwd_no_all"], "bwd", "no-all").optimal
     assert score.to_dict()["optimal"] is True
@@ -121,8 +149,10 @@ def test_every_conversation_answer_scores_optimal(world, direction, mode):
             continue
         first = conversation(world, direction, variant, mode)[3]["value"]
         # A reachable answer carries the same Thought: swap its Action tail for the full plan.
-        text = first if mode == "optimal" else first.rsplit("\nAction:", 1)[0] + "\nPlan:\n" + "\n".join(
-            world.optimal_moves()
+        text = (
+            first
+            if mode == "optimal"
+            else first.rsplit("\nAction:", 1)[0] + "\nPlan:\n" + "\n".join(world.optimal_moves())
         )
         if variant == "none" and mode == "reachable":
             text = "Plan:\n" + "\n".join(world.optimal_moves())
@@ -142,7 +172,11 @@ def test_parser_and_scorer_never_raise_on_text(text):
 
 
 @given(
-    st.lists(st.sampled_from(["Thought:", "Plan:", "Action:", "Backtrack:", "up", "right", "(0, 0)", "Step 1:", ""])),
+    st.lists(
+        st.sampled_from(
+            ["Thought:", "Plan:", "Action:", "Backtrack:", "up", "right", "(0, 0)", "Step 1:", ""]
+        )
+    ),
 )
 def test_section_soup_never_raises(lines):
     text = "\n".join(lines)
@@ -150,7 +184,10 @@ def test_section_soup_never_raises(lines):
     score_optimal(_EXAMPLE, text, "fwd", "no-all")
 
 
-@given(st.integers(0, len(GOLDEN_FWD_MARKING_DEADEND)), st.sets(st.integers(0, len(GOLDEN_LINES) - 1), max_size=5))
+@given(
+    st.integers(0, len(GOLDEN_FWD_MARKING_DEADEND)),
+    st.sets(st.integers(0, len(GOLDEN_LINES) - 1), max_size=5),
+)
 def test_mutated_golden_answers(cut, deleted):
     truncated = GOLDEN_FWD_MARKING_DEADEND[:cut]
     score = score_optimal(_EXAMPLE, truncated, "fwd", "marking-deadend")
@@ -164,7 +201,11 @@ def test_mutated_golden_answers(cut, deleted):
 
 
 def test_huge_and_odd_inputs():
-    for text in ["Plan:\n" + "up\n" * 100_000, "Thought:\n\x00\udcff\n☃\nPlan:\nrïght", "\r\n".join(GOLDEN_LINES), 12]:
+    for text in [
+        "Plan:\n" + "up\n" * 100_000,
+        "Thought:\n\x00\udcff\n☃\nPlan:\nrïght",
+        "\r\n".join(GOLDEN_LINES),
+        12,
+    ]:
         score_optimal(_EXAMPLE, text, "fwd", "marking-deadend")
         parse_action(text)
-

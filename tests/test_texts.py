@@ -111,11 +111,30 @@ def test_variants_differ_only_by_switches(example_world):
 def test_bwd_labels_are_moves_towards_the_state(example_world):
     lines = cognitive_map(example_world, "bwd", all_moves=True, marking=False, backtrack=False)
     # Step 1 from the goal (3, 2): neighbours (3, 3), (3, 1), (2, 2), (4, 2) labelled down, up, right, left.
-    assert lines[:10] == ["Thought:", "Step 1:", "(3, 3)", "down", "(3, 1)", "up", "(2, 2)", "right", "(4, 2)", "left"]
+    assert lines[:10] == [
+        "Thought:",
+        "Step 1:",
+        "(3, 3)",
+        "down",
+        "(3, 1)",
+        "up",
+        "(2, 2)",
+        "right",
+        "(4, 2)",
+        "left",
+    ]
 
 
 def test_cot_and_none(example_world):
-    assert cot_thought(example_world, "bwd")[:7] == ["Thought:", "Step 1:", "Step 2:", "Step 3:", "Step 4:", "Step 5:", "Backtrack:"]
+    assert cot_thought(example_world, "bwd")[:7] == [
+        "Thought:",
+        "Step 1:",
+        "Step 2:",
+        "Step 3:",
+        "Step 4:",
+        "Step 5:",
+        "Backtrack:",
+    ]
     assert answer(example_world, "fwd", "none", "optimal") == "Plan:\nright\nright\nup\nright\nup"
     assert answer(example_world, "bwd", "none", "reachable") == "Action:\nright"
     assert conversation(example_world, "fwd", "none", "reachable") == conversation(
@@ -187,8 +206,16 @@ def test_maps_anywhere_in_the_plane(example_world, offset):
     """Coordinates outside the 20 x 20 frame still render: the text is the example's, shifted."""
     dx, dy = offset
     shift = lambda c: (c[0] + dx, c[1] + dy)  # noqa: E731
-    moved = World(4, 3, dx, dy, tuple(map(shift, example_world.walls)), tuple(map(shift, example_world.pits)),
-                  shift(example_world.start), shift(example_world.goal))
+    moved = World(
+        4,
+        3,
+        dx,
+        dy,
+        tuple(map(shift, example_world.walls)),
+        tuple(map(shift, example_world.pits)),
+        shift(example_world.start),
+        shift(example_world.goal),
+    )
     lines = answer(moved, "fwd", "marking-deadend", "optimal").split("\n")
     golden = answer(example_world, "fwd", "marking-deadend", "optimal").split("\n")
     assert len(lines) == len(golden)
