@@ -268,7 +268,7 @@ def load_store(tracking_uri: str, experiment: str) -> StoreData:
                 except Exception as err:  # noqa: BLE001 (a broken job must not stop the report)
                     cache[job.eval_run_id] = None
                     notes.append(f"eval run {job.eval_run_id[:8]} ({job.label}): cannot read "
-                                 f"{EPISODES_ARTIFACT}: {err}")
+                                 f"{EPISODES_ARTIFACT} (shown as not run): {err}")
             frame = cache[job.eval_run_id]
             if frame is not None:
                 episodes.append(frame.assign(**cell, job_run_id=job.run_id,

@@ -33,6 +33,10 @@ def _variants(frame: pd.DataFrame) -> list[str]:
     return [v for v in VARIANT_ORDER if v in present] + sorted(present - set(VARIANT_ORDER))
 
 
+def _direction_order(item: tuple[str, pd.DataFrame]) -> tuple[int, str]:
+    return ({"fwd": 0, "bwd": 1}.get(item[0], 2), item[0])
+
+
 def train_box(episodes: pd.DataFrame) -> tuple[int, int] | None:
     """The train maximum (X, Y), inferred as the largest sizes of the episodes marked interpolated."""
     interp = episodes[episodes["interpolated"] == True]  # noqa: E712 (nullable column)
@@ -65,7 +69,7 @@ def size_heatmaps(episodes: pd.DataFrame, out: Path) -> list[Path]:
     box = train_box(episodes)
     paths = []
     for mode, by_mode in episodes.groupby("mode", sort=True):
-        for direction, block in by_mode.groupby("direction", sort=True):
+        for direction, block in sorted(by_mode.groupby("direction"), key=_direction_order):
             for metric, (title, outcome, modes) in HEATMAP_METRICS.items():
                 if mode not in modes:
                     continue
@@ -108,9 +112,14 @@ def _fit(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def _poly_text(coef: np.ndarray) -> str:
+    """``1.00n² + 0.50n - 2.00`` (two decimals: enough to tell n² from n growth)."""
     names = {0: "", 1: "n", 2: "n²"}
     degree = len(coef) - 1
-    return " + ".join(f"{c:.3g}{names[degree - i]}" for i, c in enumerate(coef))
+    terms = [f"{abs(c) + 0.0:.2f}{names[degree - i]}" for i, c in enumerate(coef)]
+    text = ("-" if coef[0] < 0 and round(coef[0], 2) else "") + terms[0]
+    for c, term in zip(coef[1:], terms[1:]):
+        text += f" {'-' if c < 0 and round(c, 2) else '+'} {term}"
+    return text
 
 
 def moves_vs_optimal(episodes: pd.DataFrame, out: Path,
