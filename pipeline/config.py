@@ -85,9 +85,7 @@ class ModelConfig:
 @dataclass
 class TrainConfig:
     max_steps: int = 1000
-    # A batch is up to `batch_tokens` packed tokens, or, if set, `per_device_batch_size` sequences.
-    batch_tokens: int = 16384
-    per_device_batch_size: Optional[int] = None
+    per_device_batch_size: int = 16
     gradient_accumulation_steps: int = 1
     learning_rate: float = 1e-3
     lr_scheduler_type: str = "cosine"
@@ -99,6 +97,10 @@ class TrainConfig:
     save_steps: int = 100
     save_total_limit: Optional[int] = None
     bf16: bool = False
+    max_grad_norm: float = 1.0
+    num_epochs: float = 1.0
+    report_to: list[str] = field(default_factory=lambda: ["mlflow"])
+    dataloader_num_workers: int = 0
     torch_threads: Optional[int] = None
     eval_fraction: float = 0.02
     # Distributed training (paper scale): launch `accelerate launch --config_file ...` in a subprocess.

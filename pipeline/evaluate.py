@@ -29,6 +29,23 @@ class Decoder(Protocol):
     def play(self, worlds: list[World], *, max_steps: int, on_episode=None) -> list: ...
 
 
+def make_decoder(cfg, model_dir: str) -> Decoder:
+    """The configured decoding backend over a finetuned model directory (safetensors, tokenizer, chat format)."""
+    from pipeline.modeling import load_chat_format, load_model, load_tokenizer
+
+    fmt = load_chat_format(model_dir)
+    tokenizer = load_tokenizer(model_dir, trust_remote_code=cfg.model.trust_remote_code)
+    common = dict(batch_size=cfg.eval.batch_size, max_new_tokens=cfg.eval.max_new_tokens)
+    if cfg.eval.backend.value == "vllm":
+        from pipeline.vllm_backend import VLLMDecoder
+
+        return VLLMDecoder(model_dir, tokenizer, fmt, dtype=cfg.model.dtype, **common)
+    from pipeline.decode import HFDecoder
+
+    model = load_model(model_dir, dtype=cfg.model.dtype, trust_remote_code=cfg.model.trust_remote_code)
+    return HFDecoder(model, tokenizer, fmt, **common)
+
+
 def _base_record(index: int, stats: dict) -> dict:
     return {"world_index": index, **{key: stats[key] for key in _STAT_FIELDS}}
 
@@ -121,8 +138,8 @@ def evaluate(
                     partial.add(optimal_record(i, worlds[i], stats[i], generation.text, generation.error, direction, variant))
                     progress.update()
             else:
-                def finished(position: int, episode) -> None:
-                    i = chunk[position]
+                def finished(episode, chunk=chunk) -> None:
+                    i = chunk[episode.world_index]
                     outcome = episode.outcome.value if episode.outcome is not None else None
                     partial.add(reachable_record(i, stats[i], outcome, episode.moves, episode.error))
                     progress.update()

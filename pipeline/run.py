@@ -6,6 +6,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import os
 from dataclasses import asdict
 from pathlib import Path
 
@@ -28,6 +29,8 @@ log = logging.getLogger("pipeline.run")
 STEP_VERSIONS = {"data-build": 1, "finetune": 1, "eval": 1}
 
 register_configs()
+# Our own bars (data-build, training, eval) say what is happening; per-file download bars only add noise.
+os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
 
 
 def _artifact_root(cfg: DictConfig) -> str:
@@ -93,19 +96,19 @@ def data_build_body(cfg: DictConfig, spec: TextSpec, step_dir: Path) -> None:
 
 
 def finetune_body(cfg: DictConfig, data: StepRun, step_dir: Path) -> None:
-    from pipeline.train_step import run_finetune
+    from pipeline.finetune_step import result_metrics, run_finetune
 
+    # Prefixed: transformers' MLflowCallback logs the Trainer's own arguments under their plain names.
     _log_config(cfg.model, "model")
     _log_config(cfg.train, "train")
-    conversations = read_conversations(data.artifact(TRAIN_CONVERSATIONS))
-    result = run_finetune(cfg, conversations, step_dir)
-    mlflow.log_metrics(result.metrics())
-    mlflow.log_artifacts(str(result.model_path), "model")
+    train_file = data.artifact(TRAIN_CONVERSATIONS)
+    result = run_finetune(cfg, read_conversations(train_file), train_file, step_dir)
+    mlflow.log_metrics(result_metrics(result))
+    mlflow.log_artifacts(result.model_dir, "model")
 
 
 def eval_body(cfg: DictConfig, spec: TextSpec, variant: str, data: StepRun, finetune: StepRun, step_dir: Path) -> None:
-    from pipeline.evaluate import evaluate, metrics
-    from pipeline.train_step import make_decoder
+    from pipeline.evaluate import evaluate, make_decoder, metrics
     from pipeline.world import load_worlds
 
     _log_config(cfg.eval, "eval")
@@ -140,6 +143,9 @@ def run_job(cfg: DictConfig) -> dict | None:
     spec = TextSpec.of(direction, variant, mode, seed=cfg.data.seed)
     hashes = step_hashes(cfg, spec)
     clear_inherited_run()
+    from transformers.utils import logging as hf_logging
+
+    hf_logging.disable_progress_bar()
     if cfg.threads:
         import torch
 

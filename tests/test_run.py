@@ -1,0 +1,89 @@
+"""The main path, end to end at toy scale: a job's three steps, their reuse, and a real Hydra multirun."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import mlflow
+import pytest
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
+
+from pipeline.config import ConfigError
+from pipeline.run import run_job
+from pipeline.tracking import EPISODE_FIELDS, EPISODES_ARTIFACT, JOB_KIND, KIND_TAG, step_run_tag
+
+ROOT = Path(__file__).resolve().parents[1]
+TOY = ["data=toy", "model=toy", "train=toy", "eval=toy", "train.max_steps=2", "eval.n_worlds=3",
+       "eval.max_new_tokens=48"]
+
+
+def _cfg(tmp_path, *overrides):
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
+        return compose("config", overrides=[*TOY, f"tracking.root={tmp_path}", *overrides])
+
+
+def _job_runs(cfg):
+    mlflow.set_tracking_uri(cfg.tracking.uri)
+    return mlflow.search_runs(experiment_names=[cfg.tracking.experiment], output_format="list",
+                              filter_string=f"tags.`{KIND_TAG}` = '{JOB_KIND}'", order_by=["attributes.start_time ASC"])
+
+
+@pytest.mark.slow
+def test_a_job_runs_its_steps_then_reuses_them(tmp_path):
+    cfg = _cfg(tmp_path, "variant=no-all", "direction=fwd")
+    first = run_job(cfg)
+    assert first["n_episodes"] == 3 and 0.0 <= first["success_rate"] <= 1.0
+    again = run_job(cfg)
+    assert again == first
+    changed_eval = run_job(_cfg(tmp_path, "variant=no-all", "direction=fwd", "eval.n_worlds=2"))
+    runs = _job_runs(cfg)
+    assert len(runs) == 3 and all(r.info.status == "FINISHED" for r in runs)
+    ids = [{step: r.data.tags[step_run_tag(step)] for step in ("data-build", "finetune", "eval")} for r in runs]
+    assert ids[0] == ids[1]
+    assert ids[2]["finetune"] == ids[0]["finetune"] and ids[2]["eval"] != ids[0]["eval"]
+    assert changed_eval["n_episodes"] == 2
+    tags = runs[0].data.tags
+    assert (tags["direction"], tags["variant"], tags["mode"], tags["paper_row"]) == ("fwd", "no-all", "optimal", "w.o. ALL")
+    records = [json.loads(line) for line in open(mlflow.artifacts.download_artifacts(
+        run_id=ids[0]["eval"], artifact_path=EPISODES_ARTIFACT, tracking_uri=cfg.tracking.uri))]
+    assert [r["world_index"] for r in records] == [0, 1, 2] and set(records[0]) == set(EPISODE_FIELDS)
+
+
+@pytest.mark.slow
+def test_reachable_job_records_outcomes(tmp_path):
+    metrics = run_job(_cfg(tmp_path, "variant=dfs", "eval.max_steps=5"))
+    assert metrics["n_episodes"] == 3
+    assert abs(sum(metrics.get(k, 0.0) for k in ("success_rate", "rate_deadend", "rate_max_step", "rate_invalid",
+                                                   "rate_error")) - 1.0) < 1e-9
+
+
+def test_an_impossible_combination_fails_before_any_work(tmp_path):
+    with pytest.raises(ConfigError, match="mode=reachable"):
+        run_job(_cfg(tmp_path, "variant=dfs", "mode=optimal"))
+    assert not (tmp_path / "mlflow.db").exists()
+
+
+def test_an_undefined_grid_cell_is_skipped_when_asked(tmp_path):
+    assert run_job(_cfg(tmp_path, "variant=dfs", "mode=optimal", "skip_undefined=true")) is None
+
+
+@pytest.mark.slow
+def test_smoke_sweep_runs_the_whole_grid(tmp_path):
+    """The README's smoke sweep, as a user runs it (a real Hydra multirun in a subprocess)."""
+    command = [sys.executable, "-m", "pipeline.run", "-m", "--config-dir", str(ROOT / "sweeps"),
+               "--config-name", "smoke", f"tracking.root={tmp_path}"]
+    done = subprocess.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=1500)
+    assert done.returncode == 0, done.stderr[-3000:]
+    summaries = [line for line in done.stdout.splitlines() if line.startswith("[job]")]
+    assert len(summaries) == 34  # 2 directions x 8 variants x 2 settings + dfs (reachable) x 2 directions
+    assert sum("skipped" in line for line in done.stdout.splitlines() + done.stderr.splitlines()) >= 2
+    mlflow.set_tracking_uri(f"sqlite:///{tmp_path}/mlflow.db")
+    jobs = mlflow.search_runs(experiment_names=["cogmap"], output_format="list",
+                              filter_string=f"tags.`{KIND_TAG}` = '{JOB_KIND}'")
+    assert len(jobs) == 34 and all(r.info.status == "FINISHED" for r in jobs)
+    finetunes = {r.data.tags[step_run_tag("finetune")] for r in jobs}
+    assert len(finetunes) == 31  # none and dfs texts do not depend on the direction: shared
+    assert (tmp_path / "report").is_dir()
