@@ -132,7 +132,8 @@ def _sample_chunk(args: tuple[int | str, str, GeneratorConfig, int, int]) -> lis
 
 def _candidates(seed: int | str, split: str, cfg: GeneratorConfig, n: int, workers: int) -> Iterator[World]:
     """Candidate worlds in index order, computed in chunks (in a process pool when workers > 1)."""
-    chunk = max(64, min(2048, n // (4 * workers) + 1))
+    # Workers run ahead of the filter and their last chunks are thrown away: keep chunks small.
+    chunk = max(64, min(512, n // (8 * workers) + 1))
     jobs = ((seed, split, cfg, begin, begin + chunk) for begin in count(0, chunk))
     if workers == 1:
         for job in jobs:
