@@ -16,6 +16,7 @@ import argparse
 import json
 import logging
 import math
+import os
 import sys
 import tempfile
 from dataclasses import dataclass, field
@@ -611,8 +612,8 @@ MCNEMAR_NOTE = (
 GRADED_NOTE = (
     "Optimal setting, graded (SPEC 4): the share of episodes whose plan parsed, stayed valid (never left "
     "the grid or hit an obstacle), reached the goal, was optimal (success), and whose map was exact; "
-    "rates are means over seeds. first_error_*: quartiles of the line where a wrong map first departs "
-    "from the true one.")
+    "rates are means over seeds. first_error_*: quartiles, over wrong maps, of the first line (0-based, "
+    "in the whole answer) where the answer departs from the golden one.")
 OUTCOMES_NOTE = (
     "Reachable setting: the share of each outcome (means over seeds); moves_over_optimal = mean of moves "
     "taken / optimal length over successful episodes.")
@@ -801,6 +802,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-log-run", action="store_true",
                         help="write the files only, without a report run in MLflow")
     args = parser.parse_args(argv)
+    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")  # one bar per eval run
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
     try:
         result = build_report(args.tracking_uri, args.experiment, args.out,
