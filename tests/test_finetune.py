@@ -1,0 +1,246 @@
+import json
+import math
+import random
+
+import mlflow
+import pytest
+import torch
+from transformers import DataCollatorWithFlattening, TrainerCallback
+
+from pipeline.chat import IGNORE_INDEX, WORD_LEVEL_FORMAT
+from pipeline.finetune import (
+    RESULT_FILE,
+    LengthGroupedBatches,
+    RightPadCollator,
+    TrainSettings,
+    finetune,
+    main,
+    tokenize_conversations,
+)
+from pipeline.modeling import build_scratch_model, load_chat_format, load_model
+from pipeline.tokenizer import build_word_tokenizer
+
+TINY = dict(hidden_size=32, num_layers=2, num_heads=2, intermediate_size=64, max_length=512)
+# One thread: tiny models gain nothing from two, and lose a lot when the machine is shared.
+QUIET = dict(report_to=(), logging_steps=1, save_steps=100, learning_rate=1e-2, per_device_batch_size=4,
+             torch_threads=1)
+
+
+def conversation(rng: random.Random) -> list[dict]:
+    """A conversation in the shape of the core's texts: a task, a map of random length and a plan."""
+    x, y = rng.randint(2, 6), rng.randint(2, 6)
+    steps = rng.randint(1, 6)
+    thought = "\n".join(f"Step {k}:\n({rng.randint(0, x)}, {rng.randint(0, y)})\n{rng.choice(['up', 'cut'])}"
+                        for k in range(1, steps + 1))
+    plan = "\n".join(rng.choice(["up", "right"]) for _ in range(rng.randint(2, 5)))
+    return [
+        {"from": "human", "value": "Answer with moves."},
+        {"from": "gpt", "value": "OK"},
+        {"from": "human", "value": f"Grid is from (0, 0) to ({x}, {y}). Goal: ({x}, {y})\nCurrent: (0, 0)"},
+        {"from": "gpt", "value": f"Thought:\n{thought}\nPlan:\n{plan}"},
+    ]
+
+
+@pytest.fixture(scope="module")
+def conversations():
+    rng = random.Random(0)
+    return [conversation(rng) for _ in range(48)]
+
+
+@pytest.fixture(scope="module")
+def tokenizer(conversations):
+    return build_word_tokenizer(turn["value"] for turns in conversations for turn in turns)
+
+
+def tiny_model(tokenizer):
+    return build_scratch_model(tokenizer, **TINY, seed=0)
+
+
+@pytest.mark.parametrize("bad, match", [
+    (dict(max_steps=0), "max_steps=0"),
+    (dict(per_device_batch_size=0), "per_device_batch_size=0"),
+    (dict(lr_scheduler_type="cosin"), "lr_scheduler_type='cosin'.*cosine"),
+    (dict(warmup_ratio=1.5), "warmup_ratio=1.5"),
+    (dict(report_to=("wandb",)), "report_to=\\('wandb',\\).*mlflow"),
+    (dict(eval_fraction=1.0), "eval_fraction=1.0"),
+    (dict(torch_threads=0), "torch_threads=0"),
+])
+def test_settings_reject_bad_values(bad, match):
+    with pytest.raises(ValueError, match=match):
+        TrainSettings(**bad)
+
+
+def test_settings_from_dict_refuses_unknown_keys():
+    assert TrainSettings.from_dict({"max_steps": 3, "report_to": []}).report_to == ()
+    with pytest.raises(ValueError, match="unknown train settings \\['learnig_rate'\\]"):
+        TrainSettings.from_dict({"learnig_rate": 1e-3})
+
+
+def test_labels_cover_gpt_values_and_turn_ends_only(tokenizer, conversations):
+    data = tokenize_conversations(tokenizer, WORD_LEVEL_FORMAT, conversations[:3], max_length=512)
+    end = tokenizer.encode(WORD_LEVEL_FORMAT.turn_end, add_special_tokens=False)
+    for turns, example in zip(conversations, data):
+        targets = [t for t in example["labels"] if t != IGNORE_INDEX]
+        expected = []
+        for turn in turns:
+            if turn["from"] == "gpt":
+                expected += tokenizer.encode(turn["value"], add_special_tokens=False) + end
+        assert targets == expected
+        kept = [i for i, t in zip(example["input_ids"], example["labels"]) if t != IGNORE_INDEX]
+        assert kept == targets  # a label is the token at its own position (the model shifts)
+
+
+def test_too_long_conversations_are_dropped_and_counted(tokenizer, conversations):
+    lengths = tokenize_conversations(tokenizer, WORD_LEVEL_FORMAT, conversations, 10_000).lengths
+    limit = sorted(lengths)[len(lengths) // 2]
+    data = tokenize_conversations(tokenizer, WORD_LEVEL_FORMAT, conversations, limit)
+    assert data.dropped == sum(n > limit for n in lengths) > 0
+    assert len(data) + data.dropped == len(conversations)
+    assert max(data.lengths) <= limit
+
+
+def test_length_grouped_batches_are_tight_and_shuffled():
+    rng = random.Random(0)
+    lengths = [rng.randint(300, 1500) for _ in range(2000)]  # the spread of real conversations
+    torch.manual_seed(0)
+    order = list(LengthGroupedBatches(lengths, batch_size=16))
+    assert sorted(order) == list(range(2000))
+    batches = [order[i:i + 16] for i in range(0, 2000, 16)]
+    computed = sum(len(b) * max(lengths[i] for i in b) for b in batches)
+    assert sum(lengths) / computed > 0.95
+    longest = [max(lengths[i] for i in b) for b in batches[:50]]
+    assert longest != sorted(longest) and longest != sorted(longest, reverse=True)  # no length curriculum
+    assert list(LengthGroupedBatches(lengths, 16)) != order  # a new draw each epoch
+
+
+def alone_logits(model, examples):
+    return [model(input_ids=torch.tensor([e["input_ids"]])).logits[0] for e in examples]
+
+
+@torch.no_grad()
+def test_right_padded_batch_without_mask_equals_each_sequence_alone(tokenizer, conversations):
+    model = tiny_model(tokenizer).eval()
+    examples = list(tokenize_conversations(tokenizer, WORD_LEVEL_FORMAT, conversations[:4], 512))
+    assert len({len(e["input_ids"]) for e in examples}) > 1
+    batch = RightPadCollator(tokenizer.pad_token_id)(examples)
+    assert "attention_mask" not in batch
+    logits = model(input_ids=batch["input_ids"]).logits
+    for row, (example, alone) in enumerate(zip(examples, alone_logits(model, examples))):
+        torch.testing.assert_close(logits[row, : len(example["input_ids"])], alone, atol=1e-5, rtol=1e-5)
+
+
+@torch.no_grad()
+def test_flattened_batch_is_exact_only_without_a_cache(tokenizer, conversations):
+    """transformers 5 reads restarting position ids as a block-diagonal mask, but only when no KV cache is
+    made: with ``use_cache=True`` (the config default outside Trainer) sequences silently see each other."""
+    model = tiny_model(tokenizer).eval()
+    examples = list(tokenize_conversations(tokenizer, WORD_LEVEL_FORMAT, conversations[:3], 512))
+    batch = DataCollatorWithFlattening()(examples)
+
+    def flat_logits(use_cache):
+        return model(input_ids=batch["input_ids"], position_ids=batch["position_ids"], use_cache=use_cache).logits[0]
+
+    exact, leaky = flat_logits(False), flat_logits(True)
+    start = 0
+    for example, alone in zip(examples, alone_logits(model, examples)):
+        n = len(example["input_ids"])
+        torch.testing.assert_close(exact[start:start + n], alone, atol=1e-5, rtol=1e-5)
+        if start:
+            assert not torch.allclose(leaky[start:start + n], alone, atol=1e-3)
+        start += n
+
+
+def test_loss_falls_and_held_out_tokens_are_learned(tokenizer, conversations, tmp_path):
+    repeated = conversations[:2] * 24
+    settings = TrainSettings(max_steps=30, eval_fraction=0.25, **QUIET)
+    result = finetune(tiny_model(tokenizer), tokenizer, WORD_LEVEL_FORMAT, repeated, settings, tmp_path)
+    assert result.final_loss < 0.5 * math.log(len(tokenizer))
+    assert result.token_accuracy > 0.4  # chance is 1/len(tokenizer), under 0.02
+    assert result.global_step == 30
+    assert result.tokens_trained > 0 and result.tokens_per_second > 0
+
+
+def test_packing_keeps_padding_small(tokenizer, conversations, tmp_path):
+    def fraction(packing):
+        settings = TrainSettings(num_epochs=1, packing=packing, **QUIET)
+        out = tmp_path / str(packing)
+        return finetune(tiny_model(tokenizer), tokenizer, WORD_LEVEL_FORMAT, conversations, settings,
+                        out).real_token_fraction
+
+    packed, padded = fraction(True), fraction(False)
+    assert packed >= 0.95 > padded
+
+
+def test_saved_model_reloads_with_its_chat_format(tokenizer, conversations, tmp_path):
+    model = tiny_model(tokenizer)
+    result = finetune(model, tokenizer, WORD_LEVEL_FORMAT, conversations[:8],
+                      TrainSettings(max_steps=2, **QUIET), tmp_path)
+    loaded = load_model(result.model_dir)
+    assert all(torch.equal(a, b) for a, b in zip(model.state_dict().values(), loaded.state_dict().values()))
+    assert load_chat_format(result.model_dir) == WORD_LEVEL_FORMAT
+
+
+class StopAt(TrainerCallback):
+    """Simulates an interruption: training stops after ``step`` (its checkpoint is written first)."""
+
+    def __init__(self, step):
+        self.step = step
+
+    def on_step_end(self, args, state, control, **kwargs):
+        if state.global_step == self.step:
+            control.should_training_stop = True
+
+
+def test_resume_after_interruption_matches_an_uninterrupted_run(tokenizer, conversations, tmp_path):
+    """Bit for bit: Trainer restores optimizer, schedule and RNG states, and the sampler draws from torch's RNG."""
+    settings = TrainSettings(max_steps=8, **{**QUIET, "save_steps": 3})
+    whole = finetune(tiny_model(tokenizer), tokenizer, WORD_LEVEL_FORMAT, conversations, settings, tmp_path / "a")
+    cut = finetune(tiny_model(tokenizer), tokenizer, WORD_LEVEL_FORMAT, conversations, settings, tmp_path / "b",
+                   callbacks=[StopAt(4)])
+    assert cut.global_step == 4 and cut.checkpoint_steps == [3]
+    resumed = finetune(tiny_model(tokenizer), tokenizer, WORD_LEVEL_FORMAT, conversations, settings,
+                       tmp_path / "b")
+    assert resumed.resumed_from.endswith("checkpoint-3")
+    assert resumed.global_step == whole.global_step == 8
+    assert resumed.tokens_trained == whole.tokens_trained
+    assert resumed.final_loss == whole.final_loss
+    a, b = load_model(whole.model_dir), load_model(resumed.model_dir)
+    for (name, x), y in zip(a.state_dict().items(), b.state_dict().values()):
+        assert torch.equal(x, y), name
+
+
+def test_metrics_land_in_the_active_mlflow_run(tokenizer, conversations, tmp_path):
+    previous = mlflow.get_tracking_uri()
+    mlflow.set_tracking_uri(f"sqlite:///{tmp_path}/mlflow.db")
+    try:
+        experiment = mlflow.create_experiment("finetune", artifact_location=(tmp_path / "artifacts").as_uri())
+        settings = TrainSettings(max_steps=4, eval_fraction=0.25, **{**QUIET, "report_to": ("mlflow",)})
+        with mlflow.start_run(experiment_id=experiment) as run:
+            finetune(tiny_model(tokenizer), tokenizer, WORD_LEVEL_FORMAT, conversations[:16], settings,
+                     tmp_path / "out")
+            assert mlflow.active_run().info.run_id == run.info.run_id  # the callback leaves our run open
+        mlflow.flush_async_logging()
+        client = mlflow.MlflowClient()
+        assert [m.step for m in client.get_metric_history(run.info.run_id, "loss")] == [1, 2, 3, 4]
+        assert client.get_metric_history(run.info.run_id, "eval_token_accuracy")
+        assert client.get_run(run.info.run_id).data.params["lr_scheduler_type"] == "cosine"
+    finally:
+        mlflow.set_tracking_uri(previous)
+
+
+def test_main_runs_a_spec(tokenizer, conversations, tmp_path):
+    tokenizer.save_pretrained(tmp_path / "tokenizer")
+    data = tmp_path / "train.jsonl"
+    data.write_text("".join(json.dumps({"conversations": turns}) + "\n" for turns in conversations[:8]))
+    spec = {
+        "model": {"scratch": TINY},
+        "tokenizer_dir": str(tmp_path / "tokenizer"),
+        "data": str(data),
+        "settings": {**QUIET, "max_steps": 2, "report_to": []},
+        "output_dir": str(tmp_path / "run"),
+    }
+    (tmp_path / "spec.json").write_text(json.dumps(spec))
+    main(["--spec", str(tmp_path / "spec.json")])
+    result = json.loads((tmp_path / "run" / RESULT_FILE).read_text())
+    assert result["global_step"] == 2
+    assert load_model(result["model_dir"]).config.hidden_size == 32
