@@ -204,6 +204,8 @@ def validate(cfg: DictConfig) -> str:
         )
     if cfg.train.max_steps < 1:
         raise ConfigError(f"train.max_steps={cfg.train.max_steps}: must be at least 1")
+    if cfg.eval.curve and not cfg.train.log_checkpoints:
+        raise ConfigError("eval.curve=true needs train.log_checkpoints=true (the curve evaluates logged checkpoints)")
     if ModelKind(cfg.model.kind) is ModelKind.hf and not cfg.model.path:
         raise ConfigError("model.kind=hf needs model.path: a local directory with a causal LM and its tokenizer")
     return variant

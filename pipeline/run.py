@@ -7,6 +7,7 @@ import hashlib
 import json
 import logging
 import os
+import shutil
 from dataclasses import asdict
 from pathlib import Path
 
@@ -21,7 +22,7 @@ from pipeline.data_build import (
     write_dataset,
 )
 from pipeline.steps import StepRun, clear_inherited_run, get_or_run
-from pipeline.tracking import EPISODES_ARTIFACT, JOB_KIND, KIND_TAG, PAPER_ROWS, ensure_experiment, step_run_tag
+from pipeline.tracking import CHECKPOINTS_ARTIFACT, CURVE_METRIC, EPISODES_ARTIFACT, JOB_KIND, KIND_TAG, PAPER_ROWS, ensure_experiment, step_run_tag
 
 log = logging.getLogger("pipeline.run")
 
@@ -105,6 +106,37 @@ def finetune_body(cfg: DictConfig, data: StepRun, step_dir: Path) -> None:
     result = run_finetune(cfg, read_conversations(train_file), train_file, step_dir)
     mlflow.log_metrics(result_metrics(result))
     mlflow.log_artifacts(result.model_dir, "model")
+    if cfg.train.log_checkpoints:
+        mlflow.log_artifacts(str(_checkpoint_models(step_dir, Path(result.model_dir))), CHECKPOINTS_ARTIFACT)
+
+
+def _checkpoint_models(step_dir: Path, model_dir: Path) -> Path:
+    """Each checkpoint's weights beside the final model's config, tokenizer and chat format: loadable dirs
+    ``step-<n>`` (optimizer states stay behind; they are large and only resuming needs them)."""
+    out = step_dir / "checkpoint_models"
+    shared = [p for p in model_dir.iterdir() if p.is_file() and p.suffix != ".safetensors"]
+    for checkpoint in sorted((step_dir / "checkpoints").glob("checkpoint-*")):
+        target = out / f"step-{checkpoint.name.split('-')[-1]}"
+        target.mkdir(parents=True, exist_ok=True)
+        for source in [*shared, *checkpoint.glob("*.safetensors")]:
+            shutil.copy2(source, target / source.name)
+    return out
+
+
+def _evaluate_curve(cfg: DictConfig, spec: TextSpec, variant: str, finetune: StepRun, worlds, stats, step_dir: Path) -> None:
+    """Figure 3: success of every logged checkpoint on the first ``eval.curve_worlds`` test worlds."""
+    from pipeline.evaluate import evaluate, make_decoder, metrics
+
+    entries = mlflow.artifacts.list_artifacts(run_id=finetune.run_id, artifact_path=CHECKPOINTS_ARTIFACT)
+    steps = sorted(int(Path(entry.path).name.split("-")[-1]) for entry in entries if entry.is_dir)
+    n = min(cfg.eval.curve_worlds, len(worlds))
+    for train_step in steps:
+        model_dir = finetune.artifact(f"{CHECKPOINTS_ARTIFACT}/step-{train_step}")
+        records = evaluate(
+            make_decoder(cfg, model_dir), worlds[:n], stats[:n], mode=spec.mode, direction=spec.direction or "fwd",
+            variant=variant, max_steps=cfg.eval.max_steps, partial_path=step_dir / f"curve-{train_step}.partial.jsonl",
+        )
+        mlflow.log_metric(CURVE_METRIC, metrics(records)["success_rate"], step=train_step)
 
 
 def eval_body(cfg: DictConfig, spec: TextSpec, variant: str, data: StepRun, finetune: StepRun, step_dir: Path) -> None:
@@ -127,6 +159,8 @@ def eval_body(cfg: DictConfig, spec: TextSpec, variant: str, data: StepRun, fine
     episodes.write_text("".join(json.dumps(record) + "\n" for record in records))
     mlflow.log_artifact(str(episodes))
     mlflow.log_metrics(metrics(records))
+    if cfg.eval.curve:
+        _evaluate_curve(cfg, spec, variant, finetune, worlds, stats, step_dir)
 
 
 # ---------------------------------------------------------------------------------------------------- job

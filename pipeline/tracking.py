@@ -32,6 +32,7 @@ def step_run_tag(step: str) -> str:
 
 EPISODES_ARTIFACT = "episodes.jsonl"
 CURVE_METRIC = "curve_success_rate"
+CHECKPOINTS_ARTIFACT = "checkpoints"  # finetune run: checkpoints/step-<n>/ loadable model dirs (Figure 3)
 
 # Per-episode record fields (eval's episodes.jsonl). Optimal-setting-only fields are null in reachable.
 EPISODE_FIELDS = (

@@ -87,3 +87,19 @@ def test_smoke_sweep_runs_the_whole_grid(tmp_path):
     finetunes = {r.data.tags[step_run_tag("finetune")] for r in jobs}
     assert len(finetunes) == 31  # none and dfs texts do not depend on the direction: shared
     assert (tmp_path / "report").is_dir()
+
+
+@pytest.mark.slow
+def test_checkpoint_curve_is_logged_by_training_step(tmp_path):
+    cfg = _cfg(tmp_path, "variant=none", "train.max_steps=4", "train.save_steps=2", "train.log_checkpoints=true",
+               "eval.curve=true", "eval.curve_worlds=2")
+    run_job(cfg)
+    job = _job_runs(cfg)[-1]
+    history = mlflow.MlflowClient().get_metric_history(job.data.tags[step_run_tag("eval")], "curve_success_rate")
+    assert sorted(m.step for m in history) == [2, 4]
+    assert all(0.0 <= m.value <= 1.0 for m in history)
+
+
+def test_a_curve_without_logged_checkpoints_is_refused(tmp_path):
+    with pytest.raises(ConfigError, match="train.log_checkpoints=true"):
+        run_job(_cfg(tmp_path, "eval.curve=true"))
