@@ -227,6 +227,11 @@ class _Rows:
     def __len__(self) -> int:
         return len(self.lengths)
 
+    def needs_compacting(self) -> bool:
+        """Whether holes made the cache much wider than its longest row (`merge` would shrink it)."""
+        slack = self.mask.shape[1] - max(self.lengths)
+        return slack > max(32, self.mask.shape[1] // 8)
+
     def extend(self, model, chunks: Sequence[Sequence[int]], pad_id: int) -> torch.Tensor:
         """Feed one chunk per row (left-padded to a block); returns each row's next-token logits."""
         width = max(len(chunk) for chunk in chunks)
@@ -408,7 +413,7 @@ class HFDecoder:
 
     def _prefill(self, rows: _Rows | None, chunks: Sequence[Sequence[int]]) -> tuple[_Rows, torch.Tensor]:
         """Append one chunk per row to `rows` (None: new rows); returns the rows and next-token logits."""
-        rows = rows or _Rows.empty(self.model, len(chunks))
+        rows = _Rows.empty(self.model, len(chunks)) if rows is None else rows
         return rows, rows.extend(self.model, chunks, self.pad_id)
 
     def _decode(
@@ -442,10 +447,10 @@ class HFDecoder:
                 if reasons[i] is not None:
                     stopped.append(j)
             if stopped:
-                if keep:
-                    parked.append(rows.select(stopped, config))
-                    parked_order += [active[j] for j in stopped]
                 going = [j for j in range(len(active)) if reasons[active[j]] is None]
+                if keep:
+                    parked.append(rows.select(stopped, config) if going else rows)
+                    parked_order += [active[j] for j in stopped]
                 if not going:
                     break
                 rows = rows.select(going, config)
@@ -456,8 +461,11 @@ class HFDecoder:
             Continuation(ids[:-n_stop], reason, n_stop=n_stop) if reason == "turn_end" else Continuation(ids, reason)
             for ids, reason in zip(generated, reasons)
         ]
-        kept = (_Rows.merge(parked, config), parked_order) if keep else None
-        return decoded, kept
+        if not keep:
+            return decoded, None
+        # Compacting copies the whole cache: do it only when holes have made it much wider.
+        whole = len(parked) == 1 and not parked[0].needs_compacting()
+        return decoded, (parked[0] if whole else _Rows.merge(parked, config), parked_order)
 
 
 class _CachedSequences:
