@@ -49,7 +49,14 @@ def generator_config(size_x: Sequence[int], size_y: Sequence[int], frame: int, p
 def build_splits(data) -> tuple[list[World], list[World]]:
     """(train, test) worlds for a data config: test generated (or the given file), train disjoint from it."""
     if data.test_file:
-        test = load_worlds(Path(data.test_file).expanduser())
+        source = Path(data.test_file).expanduser()
+        if not source.is_file():
+            raise FileNotFoundError(f"data.test_file={data.test_file!r}: no such file; expected a JSONL of worlds "
+                                    f"in the paper's schema (one {{\"question\": {{...}}}} per line)")
+        test = load_worlds(source)
+        if not test:
+            raise ValueError(f"data.test_file={data.test_file!r} holds no worlds; expected at least data.n_test="
+                             f"{data.n_test}")
         if len(test) < data.n_test:
             raise ValueError(
                 f"data.n_test={data.n_test} but {data.test_file} holds only {len(test)} worlds; "

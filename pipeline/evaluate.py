@@ -92,13 +92,18 @@ class PartialRecords:
     def __init__(self, path: str | Path):
         self.path = Path(path)
         self.records: dict[int, dict] = {}
+        torn = False
         if self.path.exists():
-            for line in self.path.read_text().splitlines():
+            text = self.path.read_text(errors="replace")
+            torn = bool(text) and not text.endswith("\n")
+            for line in text.splitlines():
                 try:
                     record = json.loads(line)
-                except json.JSONDecodeError:
-                    continue
-                self.records[record["world_index"]] = record
+                    self.records[int(record["world_index"])] = record
+                except (json.JSONDecodeError, KeyError, TypeError, ValueError):
+                    torn = True
+        if torn:  # rewrite without the torn line, so the next append does not glue onto it
+            self.path.write_text("".join(json.dumps(self.records[i]) + "\n" for i in sorted(self.records)))
         self._handle = open(self.path, "a")
 
     def add(self, record: dict) -> None:
@@ -125,13 +130,20 @@ def evaluate(
     partial_path: str | Path,
     chunk_size: int = 64,
 ) -> list[dict]:
-    """Run every world not yet in ``partial_path`` and return all records in world order."""
+    """Run every world not yet in ``partial_path`` and return all records in world order.
+
+    Chunks are fixed blocks of world indices, so a resumed eval batches the worlds it still has to do
+    exactly as an uninterrupted one would (optimal-setting records are written a whole chunk at a time,
+    so its finished chunks are skipped whole and the rest decode in the very same batches).
+    """
     partial = PartialRecords(partial_path)
-    todo = [i for i in range(len(worlds)) if i not in partial.records]
-    progress = tqdm(total=len(worlds), initial=len(worlds) - len(todo), desc=f"eval {mode}", unit="world")
+    done = sum(1 for i in range(len(worlds)) if i in partial.records)
+    progress = tqdm(total=len(worlds), initial=done, desc=f"eval {mode}", unit="world")
     try:
-        for start in range(0, len(todo), chunk_size):
-            chunk = todo[start:start + chunk_size]
+        for start in range(0, len(worlds), chunk_size):
+            chunk = [i for i in range(start, min(start + chunk_size, len(worlds))) if i not in partial.records]
+            if not chunk:
+                continue
             if mode == "optimal":
                 generations = decoder.answer([prompt_turns(worlds[i]) for i in chunk])
                 for i, generation in zip(chunk, generations):

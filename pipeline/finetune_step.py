@@ -4,6 +4,8 @@ distributed (FSDP) training, under `accelerate launch` with a resolved spec and 
 from __future__ import annotations
 
 import json
+import logging
+import shutil
 import subprocess
 import sys
 from dataclasses import asdict
@@ -13,9 +15,14 @@ import mlflow
 from omegaconf import DictConfig, OmegaConf
 
 from pipeline.chat import ChatFormat
-from pipeline.finetune import RESULT_FILE, TrainResult, TrainSettings, finetune
+from pipeline.finetune import CHECKPOINTS_DIR, RESULT_FILE, TrainResult, TrainSettings, finetune
 from pipeline.modeling import build_scratch_model, load_model, load_tokenizer
 from pipeline.tokenizer import build_word_tokenizer
+
+log = logging.getLogger(__name__)
+
+# The Trainer writes a checkpoint's files in turn and its trainer_state.json last.
+_CHECKPOINT_DONE = "trainer_state.json"
 
 # TrainConfig keys that steer the step rather than the Trainer.
 _STEP_KEYS = ("accelerate_config", "log_checkpoints")
@@ -46,8 +53,27 @@ def _tokenizer(cfg: DictConfig, conversations: list[list[dict]]):
     return load_tokenizer(cfg.model.path, trust_remote_code=cfg.model.trust_remote_code)
 
 
+def discard_incomplete_checkpoints(step_dir: Path) -> list[Path]:
+    """Delete checkpoints a killed run left half-written (no readable trainer_state.json, which the
+    Trainer writes last), so resuming picks the last complete one instead of failing on a torn one."""
+    folder = Path(step_dir) / CHECKPOINTS_DIR
+    removed = []
+    for checkpoint in sorted(folder.glob("checkpoint-*")) if folder.is_dir() else []:
+        try:
+            json.loads((checkpoint / _CHECKPOINT_DONE).read_text())
+            continue
+        except (OSError, ValueError):
+            pass
+        log.warning("discarding incomplete checkpoint %s (its run was interrupted while saving it)", checkpoint)
+        shutil.rmtree(checkpoint, ignore_errors=True)
+        removed.append(checkpoint)
+    return removed
+
+
 def run_finetune(cfg: DictConfig, conversations: list[list[dict]], train_file: str, step_dir: Path) -> TrainResult:
-    """Train the configured model on ``conversations`` (also at ``train_file``) into ``step_dir``."""
+    """Train the configured model on ``conversations`` (also at ``train_file``) into ``step_dir``, resuming
+    from its last complete checkpoint if an earlier run was interrupted."""
+    discard_incomplete_checkpoints(step_dir)
     settings = train_settings(cfg)
     fmt = chat_format(cfg)
     tokenizer = _tokenizer(cfg, conversations)

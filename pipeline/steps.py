@@ -3,7 +3,9 @@ with that hash is reused instead of run again.
 
 A per-hash file lock makes this exact under parallel jobs: the holder either finds the finished run or
 runs the step, and any RUNNING run with the same hash that it finds belonged to a process that died
-(killed jobs release their locks), so it is marked KILLED rather than left looking alive. Each step gets
+(killed jobs release their locks), so it is marked KILLED rather than left looking alive, and so is the
+job run it was nested under (same process, same death). A FINISHED run whose artifacts have gone missing
+from the artifact store is not reused: the step runs again. Each step gets
 a stable working folder (``<work_dir>/<step>/<hash>``) for checkpoints and partial records, so a rerun
 of an interrupted step resumes instead of starting over.
 """
@@ -23,6 +25,15 @@ from mlflow.entities import RunStatus
 
 from pipeline.tracking import HASH_TAG, KIND_TAG, STEP_KIND, STEP_TAG
 
+NOTE_TAG = "cogmap.note"
+# How many top-level artifacts the step logged; a reused run must still have some if it had any.
+ARTIFACTS_TAG = "cogmap.n_artifacts"
+_PARENT_TAG = "mlflow.parentRunId"
+
+
+class StepArtifactError(RuntimeError):
+    """A finished step's artifact that cannot be read back."""
+
 
 @dataclass(frozen=True)
 class StepRun:
@@ -35,7 +46,13 @@ class StepRun:
 
     def artifact(self, path: str) -> str:
         """A local path to one of the run's artifacts (downloaded if the store is remote)."""
-        return mlflow.artifacts.download_artifacts(run_id=self.run_id, artifact_path=path)
+        try:
+            return mlflow.artifacts.download_artifacts(run_id=self.run_id, artifact_path=path)
+        except Exception as error:
+            raise StepArtifactError(
+                f"{self.step} run {self.run_id} (hash {self.hash}) has no readable artifact {path!r}: {error}. "
+                f"Delete that run (`mlflow runs delete --run-id {self.run_id}`) so the step is built again."
+            ) from error
 
 
 @contextmanager
@@ -58,17 +75,44 @@ def _runs_with_hash(experiment_id: str, step: str, step_hash: str, status: str) 
     )
 
 
+def _artifacts_present(run) -> bool:
+    """Whether a finished run still has the artifacts it logged (older runs without the tag: assumed)."""
+    expected = run.data.tags.get(ARTIFACTS_TAG)
+    if not expected or expected == "0":
+        return True
+    try:
+        return bool(mlflow.MlflowClient().list_artifacts(run.info.run_id))
+    except Exception:
+        return False
+
+
 def find_finished(experiment_id: str, step: str, step_hash: str) -> str | None:
-    """The id of the latest FINISHED run of ``step`` with ``step_hash``, if any."""
-    runs = _runs_with_hash(experiment_id, step, step_hash, "FINISHED")
-    return runs[0].info.run_id if runs else None
+    """The id of the latest FINISHED run of ``step`` with ``step_hash`` whose artifacts are all there."""
+    for run in _runs_with_hash(experiment_id, step, step_hash, "FINISHED"):
+        if _artifacts_present(run):
+            return run.info.run_id
+        mlflow.MlflowClient().set_tag(run.info.run_id, NOTE_TAG, "artifacts missing from the store: not reused")
+    return None
 
 
 def _mark_stale_runs_killed(experiment_id: str, step: str, step_hash: str) -> None:
+    """Mark RUNNING runs with this hash KILLED (their process died: we hold the lock they held), and
+    their job runs too: a job dies with its step, and would otherwise stay RUNNING for ever."""
     client = mlflow.MlflowClient()
+    active = mlflow.active_run()
+    current = active.info.run_id if active else None
+    note = "interrupted: its process ended without finishing"
     for run in _runs_with_hash(experiment_id, step, step_hash, "RUNNING"):
-        client.set_tag(run.info.run_id, "cogmap.note", "interrupted: its process ended without finishing")
+        client.set_tag(run.info.run_id, NOTE_TAG, note)
         client.set_terminated(run.info.run_id, status=RunStatus.to_string(RunStatus.KILLED))
+        parent = run.data.tags.get(_PARENT_TAG)
+        if parent and parent != current:
+            try:
+                if client.get_run(parent).info.status == "RUNNING":
+                    client.set_tag(parent, NOTE_TAG, f"interrupted during its {step} step")
+                    client.set_terminated(parent, status=RunStatus.to_string(RunStatus.KILLED))
+            except Exception:  # a parent deleted from the store: nothing to mark
+                pass
 
 
 def get_or_run(
@@ -97,6 +141,7 @@ def get_or_run(
             started = time.perf_counter()
             body(step_dir)
             mlflow.log_metric("step_seconds", time.perf_counter() - started)
+            mlflow.set_tag(ARTIFACTS_TAG, str(len(mlflow.MlflowClient().list_artifacts(run.info.run_id))))
         return StepRun(step, run.info.run_id, step_hash, reused=False)
 
 

@@ -73,18 +73,75 @@ def default_tracking_uri(root: str = "outputs") -> str:
     return f"sqlite:///{(Path(root).resolve() / 'mlflow.db').as_posix()}"
 
 
+class StoreError(RuntimeError):
+    """A tracking store that cannot be used: unreachable server, unwritable folder, deleted experiment."""
+
+
+def _check_writable(folder: "str | Path", what: str) -> None:
+    """Create ``folder`` if needed and write a probe file in it; StoreError naming it if that fails."""
+    import tempfile
+    from pathlib import Path
+
+    path = Path(folder).expanduser()
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=path, prefix=".write-probe-"):
+            pass
+    except OSError as error:
+        raise StoreError(f"{what} {str(path)!r} is not a writable folder ({type(error).__name__}: {error}); "
+                         f"choose a tracking.root you can write to") from None
+
+
+def check_store(tracking_uri: str, artifact_root: "str | None" = None, timeout: float = 5.0) -> None:
+    """Fail fast on a store that cannot work, before any job starts.
+
+    A sqlite store's folder (and the artifact root) must be writable; an http(s) server must answer
+    within ``timeout`` seconds (MLflow itself retries a dead server for minutes before it gives up).
+    """
+    import urllib.error
+    import urllib.request
+    from pathlib import Path
+    from urllib.parse import urlparse
+
+    scheme = urlparse(tracking_uri).scheme
+    if scheme == "sqlite":
+        database = tracking_uri[len("sqlite:///"):] if tracking_uri.startswith("sqlite:///") else ""
+        if database and database != ":memory:":
+            _check_writable(Path(database).parent, "the MLflow store's folder")
+    elif scheme in ("http", "https"):
+        try:
+            urllib.request.urlopen(f"{tracking_uri.rstrip('/')}/health", timeout=timeout).close()
+        except urllib.error.HTTPError:
+            pass  # the server answered (an error status still means it is there)
+        except (urllib.error.URLError, OSError, ValueError) as error:
+            reason = getattr(error, "reason", error)
+            raise StoreError(
+                f"tracking URI {tracking_uri!r} did not answer within {timeout:g} s ({reason}); start the server "
+                f"(`mlflow server --host 127.0.0.1 --port PORT`) or use a local sqlite:/// URI"
+            ) from None
+    if artifact_root:
+        _check_writable(artifact_root, "the artifact folder")
+
+
 def ensure_experiment(tracking_uri: str, name: str, artifact_root: str) -> str:
     """Create the store and the experiment once (with artifacts under ``artifact_root``); return its id.
 
-    Called before any job starts: parallel jobs opening a new, empty SQLite store at once crash.
+    Called before any job starts: parallel jobs opening a new, empty SQLite store at once crash. A store
+    that cannot work (see `check_store`) or an experiment that was deleted raises StoreError first.
     """
     from pathlib import Path
 
     import mlflow
 
+    check_store(tracking_uri, artifact_root)
     mlflow.set_tracking_uri(tracking_uri)
     experiment = mlflow.get_experiment_by_name(name)
     if experiment is not None:
+        if experiment.lifecycle_stage == "deleted":
+            raise StoreError(
+                f"experiment {name!r} in {tracking_uri} is deleted; restore it (`mlflow experiments restore "
+                f"--experiment-id {experiment.experiment_id}`) or choose another tracking.experiment"
+            )
         return experiment.experiment_id
     location = Path(artifact_root).resolve()
     location.mkdir(parents=True, exist_ok=True)

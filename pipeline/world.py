@@ -281,18 +281,37 @@ def _as_cell(value: Any, name: str) -> Cell:
     return (_as_int(value[0], f"{name} x"), _as_int(value[1], f"{name} y"))
 
 
+# Loading refuses worlds larger than this many cells before allocating their mask (the paper's are <= 400).
+MAX_CELLS = 1_000_000
+
+
 def load_worlds(path: str | Path) -> list[World]:
     """Read a JSONL file of worlds; a malformed line raises WorldError naming the file and line."""
     worlds = []
-    with open(path, encoding="utf-8") as f:
-        for number, line in enumerate(f, start=1):
-            if not line.strip():
-                continue
+    with open(path, "rb") as f:
+        for number, raw in enumerate(f, start=1):
             try:
-                worlds.append(World.from_json(json.loads(line)))
+                line = raw.decode("utf-8")
+                if not line.strip():
+                    continue
+                obj = json.loads(line)
+                _check_size(obj)
+                worlds.append(World.from_json(obj))
+            except UnicodeDecodeError as err:
+                raise WorldError(f"{path}:{number}: not UTF-8 text ({err.reason} at byte {err.start})") from err
             except (json.JSONDecodeError, WorldError) as err:
                 raise WorldError(f"{path}:{number}: {err}") from err
     return worlds
+
+
+def _check_size(obj: Any) -> None:
+    """Refuse an absurd size before `World` allocates a mask for it (a typo must not exhaust memory)."""
+    question = obj.get("question") if isinstance(obj, dict) else None
+    if not isinstance(question, dict):
+        return
+    x, y = question.get("world_size_x"), question.get("world_size_y")
+    if isinstance(x, int) and isinstance(y, int) and x > 0 and y > 0 and x * y > MAX_CELLS:
+        raise WorldError(f"world_size_x={x}, world_size_y={y}: {x * y} cells; allowed: at most {MAX_CELLS}")
 
 
 def save_worlds(path: str | Path, worlds: Iterable[World]) -> None:
