@@ -164,7 +164,15 @@ def generate_worlds(
     seen = set(exclude)
     if n == 0:
         return worlds
-    for world in _candidates(seed, split, cfg, n, workers):
+    # Small size ranges hold few distinct worlds: give up (naming the numbers) rather than loop forever.
+    budget = 100 * n + 10_000
+    for examined, world in enumerate(_candidates(seed, split, cfg, n, workers), 1):
+        if examined > budget:
+            raise ValueError(
+                f"found only {len(worlds)} of n={n} distinct {split} worlds in {budget} candidates with sizes "
+                f"x in {list(cfg.size_x)}, y in {list(cfg.size_y)} (frame {cfg.frame}); allowed: a smaller n "
+                f"or wider size ranges"
+            )
         key = world.key()
         if key in seen:
             continue

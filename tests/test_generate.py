@@ -153,3 +153,11 @@ def test_generator_matches_the_paper_test_distribution(paper_worlds):
 
     for ours_value, paper_value, tolerance in zip(summary(ours), summary(paper_worlds), (0.02, 0.03, 0.06)):
         assert abs(ours_value - paper_value) < tolerance
+
+
+def test_asking_for_more_distinct_worlds_than_exist_fails_naming_the_numbers():
+    # 2 x 2 worlds in a 2 x 2 frame: two trees, each with one obstacle cell (wall or pit): 4 worlds.
+    cfg = GeneratorConfig(size_x=(2, 2), size_y=(2, 2), frame=2)
+    assert len(generate_worlds(4, 0, cfg)) == 4
+    with pytest.raises(ValueError, match="found only 4 of n=5 distinct train worlds"):
+        generate_worlds(5, 0, cfg)
