@@ -17,7 +17,7 @@ from typing import Iterable, Sequence
 from tqdm import tqdm
 
 from pipeline.generate import GeneratorConfig, generate_worlds, world_stats
-from pipeline.tokenizer import pieces
+from pipeline.tokenizer import count_pieces
 from pipeline.world import World, load_worlds, save_worlds
 from pipeline.texts import conversation
 
@@ -101,7 +101,7 @@ def write_dataset(out_dir: str | Path, train: list[World], test: list[World], sp
 
     def measured(rows: Iterable[dict]) -> Iterable[dict]:
         for row in rows:
-            token_lengths.append(sum(len(pieces(turn["value"])) + 2 for turn in row["conversations"]))
+            token_lengths.append(sum(count_pieces(turn["value"]) + 2 for turn in row["conversations"]))
             yield row
 
     _write_jsonl(out / TRAIN_CONVERSATIONS, measured(_conversations(train, spec, "train texts")))

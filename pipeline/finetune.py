@@ -278,7 +278,7 @@ def _training_arguments(settings: TrainSettings, checkpoints: Path) -> TrainingA
         dataloader_num_workers=settings.dataloader_num_workers,
         include_num_input_tokens_seen="non_padding",
         remove_unused_columns=False,
-        disable_tqdm=True,
+        dataloader_pin_memory=False,  # nothing to pin for on a CPU; on a GPU the gain is negligible here
     )
 
 

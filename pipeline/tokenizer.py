@@ -8,6 +8,7 @@ produce (``-1`` .. ``frame``), so extrapolated test worlds never meet an unknown
 
 from __future__ import annotations
 
+import re
 from functools import lru_cache
 from typing import Iterable
 
@@ -30,6 +31,16 @@ def _pre_tokenizer() -> pre_tokenizers.PreTokenizer:
 def pieces(text: str) -> list[str]:
     """The pieces a text splits into (each becomes one token)."""
     return [piece for piece, _ in _pre_tokenizer().pre_tokenize_str(text)]
+
+
+_PIECE_RE = re.compile(PIECE_PATTERN)
+
+
+# Cached: the instruction turn, the longest, repeats in every conversation.
+@lru_cache(maxsize=1024)
+def count_pieces(text: str) -> int:
+    """How many tokens ``text`` becomes (the tokenizer's pattern, 4x faster than asking the tokenizer)."""
+    return len(_PIECE_RE.findall(text))
 
 
 def coverage_text(frame: int) -> str:
