@@ -14,6 +14,7 @@ import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
+from matplotlib.ticker import MaxNLocator
 
 from pipeline.tracking import PAPER_ROWS
 
@@ -95,6 +96,9 @@ def size_heatmaps(episodes: pd.DataFrame, out: Path) -> list[Path]:
                     ax.set_title(f"{PAPER_ROWS.get(variant, variant)} (n={len(cell)})", fontsize=9)
                     ax.set_xlabel("X")
                     ax.set_ylabel("Y")
+                    # Sizes are whole cells: integer ticks only.
+                    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+                    ax.yaxis.set_major_locator(MaxNLocator(integer=True))
                 for ax in list(axes.flat)[len(variants):]:
                     ax.set_axis_off()
                 fig.colorbar(image, ax=axes, shrink=0.8, label=title)
