@@ -493,7 +493,7 @@ class _CachedSequences:
         if missing:
             raise ValueError(f"every live sequence must be continued; no request for {sorted(missing)}")
         chunks = {key: self.unfed.pop(key, []) + list(req.ids) for key, req in requests.items()}
-        lengths = dict(zip(self.keys, self.rows.lengths)) if self.rows else {}
+        lengths = dict(zip(self.keys, self.rows.lengths)) if self.rows is not None else {}
         results: dict[int, Continuation] = {}
         for key, chunk in chunks.items():
             total = lengths.get(key, 0) + len(chunk)
