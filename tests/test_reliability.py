@@ -308,10 +308,10 @@ def _model_dir(folder: Path, weights: bytes | None) -> Path:
 
 
 @pytest.mark.parametrize("case, message", [
-    ("missing", r"missing-model: no such directory; expected a local"),
-    ("no-weights", r"no-weights-model: no \*.safetensors file"),
+    ("missing", r"missing-model.*(no such directory|expected a local)"),
+    ("no-weights", r"no-weights-model.*safetensors"),
     ("corrupt", r"corrupt-model: cannot load the model"),
-    ("pickle-only", r"pickle-only-model: no \*.safetensors file"),
+    ("pickle-only", r"pickle-only-model.*safetensors"),
 ])
 def test_a_missing_or_corrupt_model_is_refused_naming_its_path(store, case, message):
     path = store / f"{case}-model"
