@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from pathlib import Path
 from dataclasses import dataclass, field
 from enum import Enum
 from typing import Any, Optional
@@ -208,6 +209,13 @@ def validate(cfg: DictConfig) -> str:
         raise ConfigError("eval.curve=true needs train.log_checkpoints=true (the curve evaluates logged checkpoints)")
     if ModelKind(cfg.model.kind) is ModelKind.hf and not cfg.model.path:
         raise ConfigError("model.kind=hf needs model.path: a local directory with a causal LM and its tokenizer")
+    if data.test_file and not Path(data.test_file).expanduser().is_file():
+        raise ConfigError(f"data.test_file={data.test_file!r}: no such file; expected a JSONL of worlds in the paper's schema")
+    if ModelKind(cfg.model.kind) is ModelKind.hf:
+        path = Path(cfg.model.path).expanduser()
+        if not path.is_dir() or not (path / "config.json").is_file() or not any(path.glob("*.safetensors")):
+            raise ConfigError(f"model.path={cfg.model.path!r}: expected a local directory with config.json and "
+                              "*.safetensors weights (models load from safetensors only)")
     return variant
 
 

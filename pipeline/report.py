@@ -13,6 +13,7 @@ of all episodes pooled over seeds, and the per-seed range is printed beside it.
 from __future__ import annotations
 
 import argparse
+import atexit
 import json
 import logging
 import math
@@ -782,8 +783,18 @@ class ReportCallback(Callback):
 
     def __init__(self, tracking_uri: str, experiment: str, out_dir: str) -> None:
         self.tracking_uri, self.experiment, self.out_dir = tracking_uri, experiment, out_dir
+        self._built = False
+
+    def on_multirun_start(self, config, **kwargs) -> None:
+        # Hydra skips on_multirun_end when a job failed (the sweeper re-raises): build at exit instead.
+        atexit.register(self._build_if_missing)
+
+    def _build_if_missing(self) -> None:
+        if not self._built:
+            self.on_multirun_end(None)
 
     def on_multirun_end(self, config, **kwargs) -> None:
+        self._built = True
         try:
             result = build_report(self.tracking_uri, self.experiment, self.out_dir)
             log.info("Report written to %s (MLflow run %s)", result.out_dir / "report.md",

@@ -8,6 +8,7 @@ import json
 import logging
 import os
 import shutil
+import signal
 from dataclasses import asdict
 from pathlib import Path
 
@@ -22,6 +23,7 @@ from pipeline.data_build import (
     write_dataset,
 )
 from pipeline.steps import StepRun, clear_inherited_run, get_or_run
+from pipeline.tracking import StoreError, check_store
 from pipeline.tracking import CHECKPOINTS_ARTIFACT, CURVE_METRIC, EPISODES_ARTIFACT, JOB_KIND, KIND_TAG, PAPER_ROWS, ensure_experiment, step_run_tag
 
 log = logging.getLogger("pipeline.run")
@@ -51,6 +53,13 @@ class PrepareStore(Callback):
 
     def on_multirun_start(self, config: DictConfig, **kwargs) -> None:
         prepare_store(config)
+
+    def on_run_start(self, config: DictConfig, **kwargs) -> None:
+        # Before Hydra makes its run folder under tracking.root: an unusable store is named, not a raw mkdir.
+        try:
+            check_store(config.tracking.uri, _artifact_root(config))
+        except StoreError as error:
+            raise ConfigError(f"tracking.root={config.tracking.root!r}, tracking.uri={config.tracking.uri!r}: {error}") from None
 
 
 # ---------------------------------------------------------------------------------------------------- hashes
@@ -215,9 +224,15 @@ def run_job(cfg: DictConfig) -> dict | None:
     return results
 
 
+def _interrupt(signum, frame) -> None:
+    # A preempted job (SIGTERM from SLURM or a shell) unwinds like Ctrl-C, so its MLflow runs end FAILED/KILLED.
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
 @hydra.main(version_base="1.3", config_path="../conf", config_name="config")
 def main(cfg: DictConfig) -> float | None:
     """Hydra entry point; returns the success rate (what a sweeper would optimise)."""
+    signal.signal(signal.SIGTERM, _interrupt)
     results = run_job(cfg)
     return None if results is None else results.get("success_rate")
 
