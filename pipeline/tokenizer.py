@@ -1,9 +1,11 @@
 """A word-level tokenizer built for Gridworld text (the CPU-default model's vocabulary).
 
-Pieces are numbers, words and punctuation, each optionally with one leading space, plus single whitespace
-characters; decoding concatenates them, so ``decode(encode(text)) == text`` for any text in the vocabulary.
-The vocabulary is the sorted set of pieces of the training texts plus every coordinate the frame can
-produce (``-1`` .. ``frame``), so extrapolated test worlds never meet an unknown number.
+A coordinate ``(x, y)`` is one piece (one word of this language: the model matches a cell against the
+obstacle lists by token identity instead of assembling five pieces, and sequences are about half as long);
+other pieces are numbers, words and punctuation, each optionally with one leading space, plus single
+whitespace characters. Decoding concatenates pieces, so ``decode(encode(text)) == text`` for any text in
+the vocabulary. The vocabulary is the sorted set of pieces of the training texts plus every coordinate the
+frame can produce (``-1`` .. ``frame`` on both axes), so extrapolated test worlds never meet an unknown cell.
 """
 
 from __future__ import annotations
@@ -17,7 +19,8 @@ from transformers import PreTrainedTokenizerFast
 
 from pipeline.chat import WORD_LEVEL_FORMAT
 
-PIECE_PATTERN = r" ?-?\d+| ?[A-Za-z']+|\n| ?[^\sA-Za-z\d]|\s"
+# "(" never takes a leading space, so " (1, 1)" is a space and the same cell word as at a line start.
+PIECE_PATTERN = r"\(-?\d+, -?\d+\)| ?-?\d+| ?[A-Za-z']+|\n| ?[^\sA-Za-z\d(]|\(|\s"
 UNK, PAD = "<unk>", "<pad>"
 SPECIAL_TOKENS = (PAD, UNK, WORD_LEVEL_FORMAT.bos, WORD_LEVEL_FORMAT.turn_end,
                   WORD_LEVEL_FORMAT.human_prefix, WORD_LEVEL_FORMAT.gpt_prefix)
@@ -44,9 +47,10 @@ def count_pieces(text: str) -> int:
 
 
 def coverage_text(frame: int) -> str:
-    """Every number a coordinate can take in a frame, with and without a leading space."""
+    """Every cell and every number a coordinate can take in a frame (numbers with and without a space)."""
     numbers = range(-1, frame + 1)
-    return " ".join(str(n) for n in numbers) + " " + ",".join(str(n) for n in numbers)
+    cells = "".join(f"({x}, {y})" for x in numbers for y in numbers)
+    return cells + " " + " ".join(str(n) for n in numbers) + " " + ",".join(str(n) for n in numbers)
 
 
 def build_word_tokenizer(texts: Iterable[str], frame: int = 20) -> PreTrainedTokenizerFast:

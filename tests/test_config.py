@@ -109,3 +109,15 @@ def test_paper_scale_presets_compose():
 def test_launcher_presets_compose(launcher):
     cfg = _compose([f"hydra/launcher={launcher}"], hydra_node=True)
     assert "_target_" in cfg.hydra.launcher
+
+
+def test_train_config_schema_matches_train_settings():
+    """The schema mirrors TrainSettings (kept apart so composing configs never imports torch)."""
+    from dataclasses import fields
+
+    from pipeline.config import TrainConfig
+    from pipeline.finetune import TrainSettings
+    from pipeline.finetune_step import _STEP_KEYS
+
+    schema = {f.name for f in fields(TrainConfig)} - set(_STEP_KEYS)
+    assert schema == {f.name for f in fields(TrainSettings)} - {"seed"}  # the job's seed seeds training

@@ -1,0 +1,56 @@
+"""The word-level tokenizer: exact round trips, coordinates as single words, full frame coverage."""
+
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from pipeline.chat import WORD_LEVEL_FORMAT, encode_conversation
+from pipeline.generate import GeneratorConfig, generate_worlds
+from pipeline.texts import conversation
+from pipeline.tokenizer import build_word_tokenizer, count_pieces, pieces
+
+WORLDS = generate_worlds(30, 0, GeneratorConfig(size_x=(2, 5), size_y=(2, 5), frame=8))
+TEXTS = [turn["value"] for w in WORLDS for turn in conversation(w, "fwd", "marking-deadend", "reachable")]
+TOKENIZER = build_word_tokenizer(TEXTS, frame=8)
+
+
+def test_coordinates_are_single_pieces_and_counts_agree():
+    text = "Current:\n(3, -1)\nPossible:\n(0, 1)\nup. The wall is at (1, 1), and (2, 2)."
+    assert pieces(text)[:4] == ["Current", ":", "\n", "(3, -1)"]
+    assert "(1, 1)" in pieces(text) and "(2, 2)" in pieces(text)
+    assert count_pieces(text) == len(pieces(text)) == len(TOKENIZER.encode(text, add_special_tokens=False))
+
+
+def test_every_text_round_trips_without_unknown_tokens():
+    for text in TEXTS:
+        ids = TOKENIZER.encode(text, add_special_tokens=False)
+        assert TOKENIZER.unk_token_id not in ids
+        assert TOKENIZER.decode(ids) == text
+
+
+def test_every_cell_of_the_frame_is_known_even_if_no_training_text_has_it():
+    tokenizer = build_word_tokenizer(["(0, 0)"], frame=20)
+    for cell in ("(20, -1)", "(-1, 20)", "(19, 7)"):
+        assert tokenizer.convert_tokens_to_ids(cell) != tokenizer.unk_token_id
+
+
+def test_the_vocabulary_is_deterministic():
+    assert build_word_tokenizer(reversed(TEXTS), frame=8).get_vocab() == TOKENIZER.get_vocab()
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.text(alphabet="()-, 0123456789abcupdownleftright\n:.'", max_size=80))
+def test_any_text_over_known_pieces_decodes_to_itself_or_marks_unknowns(text):
+    ids = TOKENIZER.encode(text, add_special_tokens=False)
+    if TOKENIZER.unk_token_id not in ids:
+        assert TOKENIZER.decode(ids) == text
+
+
+def test_labels_cover_gpt_turns_only():
+    turns = conversation(WORLDS[0], "bwd", "no-all", "optimal")
+    ids, labels = encode_conversation(TOKENIZER, WORD_LEVEL_FORMAT, turns)
+    targets = [t for t, l in zip(ids, labels) if l != -100]
+    answer = TOKENIZER.encode(turns[-1]["value"] + "</s>", add_special_tokens=False)
+    assert targets == TOKENIZER.encode("OK</s>", add_special_tokens=False) + answer
+
+
+
