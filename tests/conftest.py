@@ -78,3 +78,15 @@ def golden() -> dict[str, str]:
         "fwd_marking_deadend": GOLDEN_FWD_MARKING_DEADEND,
         "bwd_no_all": GOLDEN_BWD_NO_ALL,
     }
+
+
+def free_cells_form_a_tree(world: World) -> bool:
+    """Connected (validation checks reachability) and n-1 edges between n free cells: a tree."""
+    free = [
+        (x, y)
+        for x in range(world.x0, world.x1 + 1)
+        for y in range(world.y0, world.y1 + 1)
+        if world.is_free((x, y))
+    ]
+    edges = sum(world.is_free((x + 1, y)) + world.is_free((x, y + 1)) for x, y in free)
+    return edges == len(free) - 1

@@ -6,7 +6,7 @@ import json
 import random
 
 import pytest
-from conftest import worlds
+from conftest import free_cells_form_a_tree, worlds
 from hypothesis import given
 
 from pipeline.generate import GeneratorConfig, WorldStats, generate_worlds, sample_world, world_stats
@@ -94,15 +94,9 @@ def test_pits_only_and_walls_only():
 
 @given(worlds())
 def test_free_cells_form_a_tree(world):
-    free = [
-        (x, y)
-        for x in range(world.x0, world.x1 + 1)
-        for y in range(world.y0, world.y1 + 1)
-        if world.is_free((x, y))
-    ]
-    edges = sum(world.is_free((x + 1, y)) + world.is_free((x, y + 1)) for x, y in free)
-    assert edges == len(free) - 1
-    assert len(free) + len(world.walls) + len(world.pits) == world.size_x * world.size_y
+    assert free_cells_form_a_tree(world)
+    n_free = sum(world.is_free((x, y)) for x in range(world.x0, world.x1 + 1) for y in range(world.y0, world.y1 + 1))
+    assert n_free + len(world.walls) + len(world.pits) == world.size_x * world.size_y
 
 
 def test_world_stats_example(example_world):

@@ -7,7 +7,7 @@ import json
 from collections import deque
 
 import pytest
-from conftest import PAPER_TEST, worlds
+from conftest import PAPER_TEST, free_cells_form_a_tree, worlds
 from hypothesis import given
 
 from pipeline.generate import world_stats
@@ -157,14 +157,7 @@ def test_paper_file_loads_and_round_trips(paper_worlds):
 def test_paper_worlds_are_corner_to_corner_trees(paper_worlds):
     for world in paper_worlds:
         assert world.start == (world.x0, world.y0) and world.goal == (world.x1, world.y1)
-        free = [
-            (x, y)
-            for x in range(world.x0, world.x1 + 1)
-            for y in range(world.y0, world.y1 + 1)
-            if world.is_free((x, y))
-        ]
-        edges = sum(world.is_free((x + 1, y)) + world.is_free((x, y + 1)) for x, y in free)
-        assert edges == len(free) - 1  # connected (validated reachable) + n-1 edges = a tree
+        assert free_cells_form_a_tree(world)
 
 
 def test_paper_up_right_only_share(paper_worlds):
