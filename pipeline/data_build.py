@@ -135,6 +135,15 @@ def dataset_sha256(out_dir: str | Path) -> str:
 
 
 def read_conversations(path: str | Path) -> list[list[dict]]:
-    """The turns of every conversation in a data-build JSONL file, in order."""
-    with open(path) as handle:
-        return [json.loads(line)["conversations"] for line in handle]
+    """Conversations from JSONL, in order: each line a list of turns or an object with a ``conversations`` list."""
+    conversations = []
+    with open(path) as lines:
+        for number, line in enumerate(lines, 1):
+            if not line.strip():
+                continue
+            record = json.loads(line)
+            turns = record["conversations"] if isinstance(record, dict) else record
+            if not isinstance(turns, list):
+                raise ValueError(f"{path}:{number}: expected a list of turns or {{'conversations': [...]}}")
+            conversations.append(turns)
+    return conversations

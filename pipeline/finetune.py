@@ -30,6 +30,7 @@ import torch
 from transformers import PreTrainedModel, PreTrainedTokenizerBase, Trainer, TrainerCallback, TrainingArguments
 from transformers.trainer_utils import PREFIX_CHECKPOINT_DIR, get_last_checkpoint
 
+from pipeline.data_build import read_conversations
 from pipeline.chat import IGNORE_INDEX, WORD_LEVEL_FORMAT, ChatFormat, encode_conversation
 from pipeline.modeling import build_scratch_model, load_model, load_tokenizer, save_chat_format
 
@@ -383,21 +384,6 @@ def _real_token_fraction(trainer: Trainer) -> float:
     per_token = 6 * trainer.model.num_parameters(exclude_embeddings=True)
     computed = trainer.state.total_flos / per_token if per_token else 0
     return trainer.state.num_input_tokens_seen / computed if computed else 0.0
-
-
-def read_conversations(path: str | Path) -> list[list[dict]]:
-    """Conversations from JSONL: each line a list of turns or an object with a ``conversations`` list."""
-    conversations = []
-    with open(path) as lines:
-        for number, line in enumerate(lines, 1):
-            if not line.strip():
-                continue
-            record = json.loads(line)
-            turns = record["conversations"] if isinstance(record, dict) else record
-            if not isinstance(turns, list):
-                raise ValueError(f"{path}:{number}: expected a list of turns or {{'conversations': [...]}}")
-            conversations.append(turns)
-    return conversations
 
 
 def run_spec(spec: dict) -> TrainResult:
