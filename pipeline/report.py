@@ -36,6 +36,7 @@ from pipeline.tracking import (
     KIND_TAG,
     PAPER_ROWS,
     REPORT_KIND,
+    TRAIN_MAX_TAGS,
     default_tracking_uri,
     step_run_tag,
 )
@@ -122,6 +123,7 @@ class Job:
     eval_run_id: str | None
     finetune_run_id: str | None
     start_time: int
+    train_max: tuple[int, int] | None = None   # (X, Y) from the job's tags; None for runs that predate them
 
     @property
     def label(self) -> str:
@@ -199,6 +201,7 @@ def finished_jobs(client, experiment_id: str) -> tuple[list[Job], list[str]]:
             eval_run_id=tags.get(step_run_tag("eval")),
             finetune_run_id=tags.get(step_run_tag("finetune")),
             start_time=run.info.start_time or 0,
+            train_max=_train_max(tags),
         )
         key = (job.mode, job.direction, job.variant, job.seed)
         if key not in latest or job.start_time > latest[key].start_time:
@@ -211,6 +214,13 @@ def finished_jobs(client, experiment_id: str) -> tuple[list[Job], list[str]]:
         _index(MODES, j.mode), _index(DIRECTIONS, j.direction), order.get(j.variant, len(order)),
         j.variant, _seed_key(j.seed)))
     return jobs, notes
+
+
+def _train_max(tags: dict) -> tuple[int, int] | None:
+    try:
+        return int(tags[TRAIN_MAX_TAGS[0]]), int(tags[TRAIN_MAX_TAGS[1]])
+    except (KeyError, ValueError):
+        return None
 
 
 def _index(seq: tuple[str, ...], value: str) -> int:
@@ -273,8 +283,9 @@ def load_store(tracking_uri: str, experiment: str) -> StoreData:
                                  f"{EPISODES_ARTIFACT} (shown as not run): {err}")
             frame = cache[job.eval_run_id]
             if frame is not None:
-                episodes.append(frame.assign(**cell, job_run_id=job.run_id,
-                                             eval_run_id=job.eval_run_id))
+                box = job.train_max or (None, None)
+                episodes.append(frame.assign(**cell, job_run_id=job.run_id, eval_run_id=job.eval_run_id,
+                                             train_max_x=box[0], train_max_y=box[1]))
                 curve = _history(client, job.eval_run_id, CURVE_METRIC)
                 if len(curve):
                     curves.append(curve.assign(**cell, job_run_id=job.run_id))
@@ -283,7 +294,7 @@ def load_store(tracking_uri: str, experiment: str) -> StoreData:
                 if len(loss):
                     losses.append(loss.assign(**cell, finetune_run_id=job.finetune_run_id))
     episode_columns = [*(f for f in EPISODE_FIELDS if f != "moves"), *JOB_COLUMNS, "job_run_id",
-                       "eval_run_id"]
+                       "eval_run_id", *TRAIN_MAX_TAGS]
     return StoreData(
         experiment=experiment,
         jobs=jobs,

@@ -39,7 +39,13 @@ def _direction_order(item: tuple[str, pd.DataFrame]) -> tuple[int, str]:
 
 
 def train_box(episodes: pd.DataFrame) -> tuple[int, int] | None:
-    """The train maximum (X, Y), inferred as the largest sizes of the episodes marked interpolated."""
+    """The train maximum (X, Y): from the jobs' ``train_max_x/y`` tags when they all carry the same one, else
+    inferred as the largest sizes of the episodes marked interpolated (jobs logged before the tags existed)."""
+    if {"train_max_x", "train_max_y"} <= set(episodes.columns):
+        boxes = set(zip(episodes["train_max_x"], episodes["train_max_y"]))
+        if len(boxes) == 1 and not any(pd.isna(v) for v in next(iter(boxes))):
+            x, y = next(iter(boxes))
+            return int(x), int(y)
     interp = episodes[episodes["interpolated"] == True]  # noqa: E712 (nullable column)
     if interp.empty:
         return None
@@ -59,7 +65,7 @@ def size_grid(frame: pd.DataFrame, values: pd.Series, sizes: range) -> np.ndarra
 def size_heatmaps(episodes: pd.DataFrame, out: Path) -> list[Path]:
     """One figure per (mode, direction, metric): a panel per variant, success (or outcome) rate by size.
 
-    Seeds are pooled. The train boundary (inferred by :func:`train_box`) is drawn as a red box; sizes no
+    Seeds are pooled. Each panel's train boundary (:func:`train_box`) is drawn as a red box; sizes no
     test world has are grey. All panels share the 0-1 colour scale.
     """
     if episodes.empty:
@@ -67,7 +73,6 @@ def size_heatmaps(episodes: pd.DataFrame, out: Path) -> list[Path]:
     out.mkdir(parents=True, exist_ok=True)
     sizes = range(int(min(episodes["size_x"].min(), episodes["size_y"].min(), 2)),
                   int(max(episodes["size_x"].max(), episodes["size_y"].max())) + 1)
-    box = train_box(episodes)
     paths = []
     for mode, by_mode in episodes.groupby("mode", sort=True):
         for direction, block in sorted(by_mode.groupby("direction"), key=_direction_order):
@@ -83,6 +88,7 @@ def size_heatmaps(episodes: pd.DataFrame, out: Path) -> list[Path]:
                 for ax, variant in zip(axes.flat, variants):
                     cell = block[block["variant"] == variant]
                     hit = cell["success"] if outcome is None else cell["outcome"] == outcome
+                    box = train_box(cell)
                     grid = size_grid(cell, hit.astype(float), sizes)
                     image = ax.imshow(np.ma.masked_invalid(grid), origin="lower", vmin=0, vmax=1,
                                       cmap="viridis",

@@ -23,6 +23,9 @@ HASH_TAG = "cogmap.hash"
 JOB_KIND, STEP_KIND, REPORT_KIND = "job", "step", "report"
 STEPS = ("data-build", "finetune", "eval")
 JOB_TAGS = ("direction", "variant", "mode", "seed", "paper_row")
+# Job-run tags: the largest train world sides (data.train_size_x/y). Test worlds within both are interpolated;
+# the report draws this box on the size heatmaps.
+TRAIN_MAX_TAGS = ("train_max_x", "train_max_y")
 
 
 def step_run_tag(step: str) -> str:

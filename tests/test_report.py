@@ -111,10 +111,10 @@ class Store:
             self.client.log_metric(run_id, key, value, step=step)
 
     def job(self, mode, direction, variant, seed=0, *, wins=None, status="FINISHED",
-            eval_run=None, loss=None, curve=None, artifact=True) -> tuple[str, str]:
+            eval_run=None, loss=None, curve=None, artifact=True, job_tags=None) -> tuple[str, str]:
         """A job run with nested finetune and eval runs (or pointing at ``eval_run``)."""
         job = self._run({KIND_TAG: JOB_KIND, "mode": mode, "direction": direction, "variant": variant,
-                         "seed": str(seed), "paper_row": report.PAPER_ROWS[variant]})
+                         "seed": str(seed), "paper_row": report.PAPER_ROWS[variant], **(job_tags or {})})
         tags = {}
         if variant != "dfs":
             finetune = self._run({KIND_TAG: STEP_KIND, STEP_TAG: "finetune"}, job)
@@ -331,6 +331,21 @@ def test_report_runs_are_not_read_as_jobs(built):
 
 
 # ---------------------------------------------------------------------------------- CLI and callback
+
+
+def test_train_box_comes_from_job_tags(tmp_path):
+    from pipeline.report_figures import train_box
+
+    s = Store(tmp_path)
+    s.job("optimal", "fwd", "marking-deadend", wins=set(range(5)), job_tags={"train_max_x": "6", "train_max_y": "4"})
+    s.job("optimal", "bwd", "marking-deadend", wins=set(range(5)))          # a job logged before the tags
+    data = report.load_store(s.uri, "cogmap")
+    by_direction = dict(tuple(data.episodes.groupby("direction")))
+    # The tags win over the episodes' interpolated flags, which would infer (5, 5) here.
+    assert train_box(by_direction["fwd"]) == (6, 4)
+    assert train_box(by_direction["bwd"]) == (5, 5)
+    # Jobs with different boxes pooled in one panel: no single tag box, so it is inferred.
+    assert train_box(data.episodes) == (5, 5)
 
 
 def test_cli_missing_store_and_experiment(tmp_path, store, capsys):
