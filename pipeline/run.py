@@ -24,7 +24,7 @@ from pipeline.data_build import (
 )
 from pipeline.steps import StepRun, clear_inherited_run, get_or_run
 from pipeline.tracking import StoreError, check_store
-from pipeline.tracking import CHECKPOINTS_ARTIFACT, CURVE_METRIC, EPISODES_ARTIFACT, JOB_KIND, KIND_TAG, PAPER_ROWS, ensure_experiment, step_run_tag
+from pipeline.tracking import CHECKPOINTS_ARTIFACT, CURVE_METRIC, EPISODES_ARTIFACT, JOB_KIND, KIND_TAG, PAPER_ROWS, TRAIN_MAX_TAGS, ensure_experiment, step_run_tag
 
 log = logging.getLogger("pipeline.run")
 
@@ -199,7 +199,8 @@ def run_job(cfg: DictConfig) -> dict | None:
     tags = {"direction": direction, "variant": variant, "mode": mode, "seed": str(cfg.seed),
             "paper_row": PAPER_ROWS[variant]}
     work_dir = Path(cfg.work_dir)
-    with mlflow.start_run(run_name=f"{direction}-{variant}-{mode}", tags={**tags, KIND_TAG: JOB_KIND}) as job:
+    train_max = {TRAIN_MAX_TAGS[0]: str(max(cfg.data.train_size_x)), TRAIN_MAX_TAGS[1]: str(max(cfg.data.train_size_y))}
+    with mlflow.start_run(run_name=f"{direction}-{variant}-{mode}", tags={**tags, **train_max, KIND_TAG: JOB_KIND}) as job:
         mlflow.log_dict(OmegaConf.to_container(cfg, resolve=True, enum_to_str=True), "config.json")
 
         def step(name: str, body) -> StepRun:
