@@ -14,7 +14,7 @@ from typing import Iterable, Protocol, Sequence
 from tqdm import tqdm
 
 from pipeline.env import Outcome
-from pipeline.scoring import parse_answer, plan_moves, score_optimal
+from pipeline.scoring import score_optimal
 from pipeline.texts import prompt_turns
 from pipeline.world import World
 
@@ -42,7 +42,8 @@ def make_decoder(cfg, model_dir: str) -> Decoder:
         return VLLMDecoder(model_dir, tokenizer, fmt, dtype=cfg.model.dtype, **common)
     from pipeline.decode import HFDecoder
 
-    model = load_model(model_dir, dtype=cfg.model.dtype, trust_remote_code=cfg.model.trust_remote_code)
+    model = load_model(model_dir, dtype=cfg.model.dtype, trust_remote_code=cfg.model.trust_remote_code,
+                       attn_implementation=cfg.model.attn_implementation)
     return HFDecoder(model, tokenizer, fmt, **common)
 
 
@@ -57,7 +58,7 @@ def optimal_record(index: int, world: World, stats: dict, text: str, error: str 
         return {**record, "success": False, "outcome": "error", "n_moves": 0, "moves": [], "parsed": False,
                 "valid": False, "reaches_goal": False, "map_exact": None, "map_first_error": None, "error": error}
     score = score_optimal(world, text, direction, variant)
-    moves = plan_moves(parse_answer(text)) or []
+    moves = list(score.moves)
     return {
         **record,
         "success": bool(score.optimal),

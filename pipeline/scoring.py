@@ -72,6 +72,7 @@ class PlanScore:
     map_first_error: int | None
     plan_length: int | None
     optimal_length: int
+    moves: tuple[str, ...] = ()      # the parsed plan (empty when it does not parse)
 
     def to_dict(self) -> dict:
         """Plain dict for a table row."""
@@ -127,6 +128,7 @@ def score_optimal(world: World, text: object, direction: str, variant: str) -> P
         map_first_error=first_difference(_as_text(text).split("\n"), golden.split("\n")),
         plan_length=len(moves) if moves is not None else None,
         optimal_length=len(optimal_moves),
+        moves=tuple(moves or ()),
     )
 
 

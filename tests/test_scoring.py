@@ -94,6 +94,7 @@ def test_golden_answers_score_optimal(example_world, golden):
         map_first_error=None,
         plan_length=5,
         optimal_length=5,
+        moves=tuple(example_world.optimal_moves()),
     )
     assert score_optimal(example_world, golden["bwd_no_all"], "bwd", "no-all").optimal
     assert score.to_dict()["optimal"] is True
