@@ -275,6 +275,8 @@ def _training_arguments(settings: TrainSettings, checkpoints: Path) -> TrainingA
         save_steps=settings.save_steps,
         save_total_limit=settings.save_total_limit,
         bf16=settings.bf16,
+        # bf16 without a GPU is CPU autocast (AMX/AVX512-BF16 matmuls); transformers asks for use_cpu then.
+        use_cpu=settings.bf16 and not torch.cuda.is_available(),
         report_to=list(settings.report_to) or "none",
         dataloader_num_workers=settings.dataloader_num_workers,
         include_num_input_tokens_seen="non_padding",
@@ -395,7 +397,8 @@ def run_spec(spec: dict) -> TrainResult:
     fmt = ChatFormat(**spec["chat_format"]) if "chat_format" in spec else WORD_LEVEL_FORMAT
     source = spec["model"]
     if "path" in source:
-        model = load_model(source["path"], dtype=source.get("dtype", "float32"))
+        model = load_model(source["path"], dtype=source.get("dtype", "float32"),
+                           attn_implementation=source.get("attn_implementation"))
     else:
         model = build_scratch_model(tokenizer, **source.get("scratch", {}))
     conversations = read_conversations(spec["data"])

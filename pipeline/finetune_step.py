@@ -43,7 +43,8 @@ def chat_format(cfg: DictConfig) -> ChatFormat:
 def _scratch_kwargs(cfg: DictConfig) -> dict:
     model = cfg.model
     return dict(hidden_size=model.hidden_size, num_layers=model.num_layers, num_heads=model.num_heads,
-                intermediate_size=model.intermediate_size, max_length=model.max_length, seed=cfg.seed)
+                intermediate_size=model.intermediate_size, max_length=model.max_length,
+                attn_implementation=model.attn_implementation, seed=cfg.seed)
 
 
 def _tokenizer(cfg: DictConfig, conversations: list[list[dict]]):
@@ -83,7 +84,8 @@ def run_finetune(cfg: DictConfig, conversations: list[list[dict]], train_file: s
     if cfg.model.kind.value == "scratch":
         model = build_scratch_model(tokenizer, **_scratch_kwargs(cfg))
     else:
-        model = load_model(cfg.model.path, dtype=cfg.model.dtype, trust_remote_code=cfg.model.trust_remote_code)
+        model = load_model(cfg.model.path, dtype=cfg.model.dtype, trust_remote_code=cfg.model.trust_remote_code,
+                           attn_implementation=cfg.model.attn_implementation)
     mlflow.log_param("model.parameters", model.num_parameters())
     return finetune(model, tokenizer, fmt, conversations, settings, step_dir)
 
@@ -93,7 +95,8 @@ def _launch_distributed(cfg, settings: TrainSettings, fmt: ChatFormat, tokenizer
     tokenizer_dir = step_dir / "tokenizer"
     tokenizer.save_pretrained(str(tokenizer_dir))
     source = ({"scratch": _scratch_kwargs(cfg)} if cfg.model.kind.value == "scratch"
-              else {"path": cfg.model.path, "dtype": cfg.model.dtype})
+              else {"path": cfg.model.path, "dtype": cfg.model.dtype,
+                    "attn_implementation": cfg.model.attn_implementation})
     spec = {
         "tokenizer_dir": str(tokenizer_dir), "data": train_file, "output_dir": str(step_dir),
         "settings": {**asdict(settings), "report_to": list(settings.report_to)},

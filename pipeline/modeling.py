@@ -23,6 +23,7 @@ from transformers import (
 )
 
 from pipeline.chat import ChatFormat
+from pipeline.config import ATTENTION_IMPLEMENTATIONS
 
 CHAT_FORMAT_FILE = "chat_format.json"
 DTYPES = ("float32", "bfloat16", "float16")
@@ -42,6 +43,7 @@ def build_scratch_model(
     num_heads: int = 4,
     intermediate_size: int = 512,
     max_length: int = 2048,
+    attn_implementation: str = "sdpa",
     seed: int = 0,
 ) -> LlamaForCausalLM:
     """A randomly initialised fp32 Llama sized for ``tokenizer``; the same seed gives the same weights.
@@ -50,6 +52,7 @@ def build_scratch_model(
     """
     if hidden_size % num_heads:
         raise ValueError(f"hidden_size={hidden_size} must be a multiple of num_heads={num_heads}")
+    _check_attention(attn_implementation)
     config = LlamaConfig(
         vocab_size=len(tokenizer),
         hidden_size=hidden_size,
@@ -62,7 +65,7 @@ def build_scratch_model(
         bos_token_id=tokenizer.bos_token_id,
         eos_token_id=tokenizer.eos_token_id,
         tie_word_embeddings=True,
-        attn_implementation="sdpa",
+        attn_implementation=attn_implementation,
     )
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
@@ -76,14 +79,24 @@ def _torch_dtype(dtype: str) -> torch.dtype:
     return getattr(torch, dtype)
 
 
+def _check_attention(attn_implementation: str | None) -> None:
+    if attn_implementation is not None and attn_implementation not in ATTENTION_IMPLEMENTATIONS:
+        raise ValueError(f"attn_implementation={attn_implementation!r} is not supported; "
+                         f"allowed: {', '.join(ATTENTION_IMPLEMENTATIONS)}")
+
+
 def _require_dir(path: Path, expected: str) -> None:
     if not path.is_dir():
         raise ModelLoadError(f"{path}: no such directory; expected {expected}")
 
 
-def load_model(path: str | Path, *, dtype: str = "float32", trust_remote_code: bool = False) -> PreTrainedModel:
-    """A causal LM from a local directory of safetensors weights (no pickle, no remote code unless asked)."""
+def load_model(path: str | Path, *, dtype: str = "float32", trust_remote_code: bool = False,
+               attn_implementation: str | None = None) -> PreTrainedModel:
+    """A causal LM from a local directory of safetensors weights (no pickle, no remote code unless asked).
+    ``attn_implementation`` None keeps transformers' choice for the model."""
     torch_dtype = _torch_dtype(dtype)
+    _check_attention(attn_implementation)
+    extra = {} if attn_implementation is None else {"attn_implementation": attn_implementation}
     path = Path(path)
     _require_dir(path, _EXPECTED_MODEL)
     if not (path / "config.json").is_file():
@@ -93,7 +106,7 @@ def load_model(path: str | Path, *, dtype: str = "float32", trust_remote_code: b
     try:
         return AutoModelForCausalLM.from_pretrained(
             path, dtype=torch_dtype, use_safetensors=True, trust_remote_code=trust_remote_code,
-            local_files_only=True,
+            local_files_only=True, **extra,
         )
     except Exception as exc:  # safetensors, json and torch each raise their own types for a broken file
         raise ModelLoadError(f"{path}: cannot load the model ({type(exc).__name__}: {exc}); "
