@@ -100,6 +100,7 @@ class TrainConfig:
     weight_decay: float = 0.0
     max_length: int = 2048
     packing: bool = True
+    pad_to_multiple_of: int = 8
     logging_steps: int = 10
     save_steps: int = 100
     save_total_limit: Optional[int] = None

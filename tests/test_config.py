@@ -72,6 +72,7 @@ def test_marking_without_all_moves_is_refused_naming_the_values():
     ("eval.n_worlds=100000", "eval.n_worlds=100000"),
     ("train.max_steps=0", "train.max_steps"),
     ("model=hf", "model.path"),
+    ("model.attn_implementation=flash", "model.attn_implementation='flash'.*sdpa, eager"),
 ])
 def test_bad_values_fail_before_any_work(override, message):
     cfg = _compose([override, "model.path=null"] if override == "model=hf" else [override])

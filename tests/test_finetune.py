@@ -64,6 +64,7 @@ def tiny_model(tokenizer):
     (dict(report_to=("wandb",)), "report_to=\\('wandb',\\).*mlflow"),
     (dict(eval_fraction=1.0), "eval_fraction=1.0"),
     (dict(torch_threads=0), "torch_threads=0"),
+    (dict(pad_to_multiple_of=0), "pad_to_multiple_of=0"),
 ])
 def test_settings_reject_bad_values(bad, match):
     with pytest.raises(ValueError, match=match):
@@ -118,12 +119,15 @@ def alone_logits(model, examples):
 
 
 @torch.no_grad()
-def test_right_padded_batch_without_mask_equals_each_sequence_alone(tokenizer, conversations):
+@pytest.mark.parametrize("multiple", [1, 8])
+def test_right_padded_batch_without_mask_equals_each_sequence_alone(tokenizer, conversations, multiple):
     model = tiny_model(tokenizer).eval()
     examples = list(tokenize_conversations(tokenizer, WORD_LEVEL_FORMAT, conversations[:4], 512))
     assert len({len(e["input_ids"]) for e in examples}) > 1
-    batch = RightPadCollator(tokenizer.pad_token_id)(examples)
+    batch = RightPadCollator(tokenizer.pad_token_id, pad_to_multiple_of=multiple)(examples)
     assert "attention_mask" not in batch
+    longest = max(len(e["input_ids"]) for e in examples)
+    assert batch["input_ids"].shape[1] == -(-longest // multiple) * multiple
     logits = model(input_ids=batch["input_ids"]).logits
     for row, (example, alone) in enumerate(zip(examples, alone_logits(model, examples))):
         torch.testing.assert_close(logits[row, : len(example["input_ids"])], alone, atol=1e-5, rtol=1e-5)
@@ -160,9 +164,19 @@ def test_loss_falls_and_held_out_tokens_are_learned(tokenizer, conversations, tm
     assert result.tokens_trained > 0 and result.tokens_per_second > 0
 
 
+def test_bf16_autocast_trains_on_a_cpu(tokenizer, conversations, tmp_path):
+    repeated = conversations[:2] * 24
+    settings = TrainSettings(max_steps=30, bf16=True, **QUIET)
+    model = tiny_model(tokenizer)
+    result = finetune(model, tokenizer, WORD_LEVEL_FORMAT, repeated, settings, tmp_path)
+    assert result.final_loss < 0.5 * math.log(len(tokenizer))
+    assert next(model.parameters()).dtype == torch.float32  # master weights stay fp32
+
+
 def test_packing_keeps_padding_small(tokenizer, conversations, tmp_path):
     def fraction(packing):
-        settings = TrainSettings(num_epochs=1, packing=packing, **QUIET)
+        # Width rounding off: these conversations are short, so rounding to 8 would dominate the padding.
+        settings = TrainSettings(num_epochs=1, packing=packing, pad_to_multiple_of=1, **QUIET)
         out = tmp_path / str(packing)
         return finetune(tiny_model(tokenizer), tokenizer, WORD_LEVEL_FORMAT, conversations, settings,
                         out).real_token_fraction

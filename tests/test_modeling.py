@@ -47,6 +47,20 @@ def test_heads_must_divide_hidden(tokenizer):
         build_scratch_model(tokenizer, hidden_size=30, num_heads=4)
 
 
+@torch.no_grad()
+def test_eager_and_sdpa_attention_agree_and_unknown_kernels_are_refused(tokenizer, tmp_path):
+    sdpa = build_scratch_model(tokenizer, **TINY).eval()
+    eager = build_scratch_model(tokenizer, **TINY, attn_implementation="eager").eval()
+    ids = torch.tensor([tokenizer.encode("Grid is from (0, 0) to (3, 2).", add_special_tokens=False)])
+    torch.testing.assert_close(sdpa(input_ids=ids).logits, eager(input_ids=ids).logits, atol=1e-5, rtol=1e-5)
+    with pytest.raises(ValueError, match="attn_implementation='flash'.*allowed: sdpa, eager"):
+        build_scratch_model(tokenizer, **TINY, attn_implementation="flash")
+    sdpa.save_pretrained(tmp_path)
+    assert load_model(tmp_path, attn_implementation="eager").config._attn_implementation == "eager"
+    with pytest.raises(ValueError, match="attn_implementation='flash'"):
+        load_model(tmp_path, attn_implementation="flash")
+
+
 def test_save_and_load_round_trip(tokenizer, tmp_path):
     model = build_scratch_model(tokenizer, **TINY)
     model.save_pretrained(tmp_path)
