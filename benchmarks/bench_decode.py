@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/bench_decode.py [--worlds 32] [--repeats 2] [--threads 2]
 
-One randomly initialised Llama (CPU default size: hidden 128, 4 layers, 4 heads, intermediate 512) and the
+One randomly initialised Llama (CPU default size: hidden 128, 4 layers, 2 heads, intermediate 512) and the
 same generated worlds (sides 3-6) for every contender. An untrained model neither ends its turns nor
 answers moves, so to get realistic multi-turn episodes the answers' lengths are forced by caps (first
 answer: `--first-tokens`, standing in for a Thought; later answers: `--move-tokens`, a bare move) and the
@@ -77,8 +77,8 @@ def main() -> None:
     texts = [t["value"] for w in worlds for t in conversation(w, "bwd", "marking-deadend", "reachable")]
     tokenizer = build_word_tokenizer(texts)
     torch.manual_seed(0)
-    config = LlamaConfig(vocab_size=len(tokenizer), hidden_size=128, num_hidden_layers=4, num_attention_heads=4,
-                         num_key_value_heads=4, intermediate_size=512, max_position_embeddings=4096)
+    config = LlamaConfig(vocab_size=len(tokenizer), hidden_size=128, num_hidden_layers=4, num_attention_heads=2,
+                         num_key_value_heads=2, intermediate_size=512, max_position_embeddings=4096)
     model = LlamaForCausalLM(config).eval()
     print(f"model: {sum(p.numel() for p in model.parameters()) / 1e6:.2f}M params, threads {args.threads}; "
           f"{len(worlds)} worlds, sides 3-6")

@@ -80,7 +80,7 @@ class ModelConfig:
     path: Optional[str] = None
     hidden_size: int = 128
     num_layers: int = 4
-    num_heads: int = 4
+    num_heads: int = 2
     intermediate_size: int = 512
     max_length: int = 2048
     dtype: str = "float32"

@@ -40,7 +40,7 @@ def build_scratch_model(
     *,
     hidden_size: int = 128,
     num_layers: int = 4,
-    num_heads: int = 4,
+    num_heads: int = 2,
     intermediate_size: int = 512,
     max_length: int = 2048,
     attn_implementation: str = "sdpa",
