@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import random
 from pathlib import Path
 
@@ -12,7 +13,18 @@ from hypothesis import strategies as st
 from pipeline.generate import GeneratorConfig, sample_world
 from pipeline.world import World, load_worlds
 
-PAPER_TEST = Path("/work/shared/data/paper_test_3000.jsonl")
+
+def _paper_test() -> Path:
+    """The paper's released test worlds: $COGMAP_PAPER_TEST, else ``shared/`` beside the checkout (where the
+    project keeps it), else the development machine's copy. Tests that need it skip, naming it, when absent."""
+    candidates = [os.environ.get("COGMAP_PAPER_TEST"),
+                  Path(__file__).resolve().parents[2] / "shared" / "data" / "paper_test_3000.jsonl",
+                  "/work/shared/data/paper_test_3000.jsonl"]
+    paths = [Path(c) for c in candidates if c]
+    return next((p for p in paths if p.is_file()), paths[0])
+
+
+PAPER_TEST = _paper_test()
 
 # World generation dominates example time; no deadline so a slow CI box does not flake.
 settings.register_profile(
@@ -43,11 +55,17 @@ def example_world() -> World:
 
 
 @pytest.fixture(scope="session")
-def paper_worlds() -> list[World]:
+def paper_test_file() -> Path:
+    """Path of the paper's released test file (skips, naming it, where it is absent)."""
+    if not PAPER_TEST.is_file():
+        pytest.skip(f"{PAPER_TEST} is not available (set COGMAP_PAPER_TEST)")
+    return PAPER_TEST
+
+
+@pytest.fixture(scope="session")
+def paper_worlds(paper_test_file) -> list[World]:
     """The paper's released test set, loaded once per session."""
-    if not PAPER_TEST.exists():
-        pytest.skip(f"{PAPER_TEST} is not available")
-    return load_worlds(PAPER_TEST)
+    return load_worlds(paper_test_file)
 
 
 # SPEC 2-3 golden strings for the worked example, character for character.

@@ -11,8 +11,6 @@ from pipeline.data_build import (
 )
 from pipeline.world import World, load_worlds
 
-PAPER_TEST = "../shared/data/paper_test_3000.jsonl"
-
 
 def _data(**overrides):
     values = dict(train_size_x=[2, 4], train_size_y=[2, 4], test_size_x=[2, 5], test_size_y=[2, 5], frame=6,
@@ -58,13 +56,13 @@ def test_direction_free_baselines_share_one_text_spec():
     assert TextSpec.of("fwd", "cot", "optimal") != TextSpec.of("bwd", "cot", "optimal")
 
 
-def test_the_papers_test_file_can_be_the_test_split():
-    train, test = build_splits(_data(test_file=PAPER_TEST, n_test=25, n_train=5))
-    with open(PAPER_TEST) as handle:
+def test_the_papers_test_file_can_be_the_test_split(paper_test_file):
+    train, test = build_splits(_data(test_file=str(paper_test_file), n_test=25, n_train=5))
+    with open(paper_test_file) as handle:
         first = [World.from_json(json.loads(next(handle))) for _ in range(25)]
     assert test == first
 
 
-def test_asking_for_more_test_worlds_than_the_file_holds_names_the_limit():
+def test_asking_for_more_test_worlds_than_the_file_holds_names_the_limit(paper_test_file):
     with pytest.raises(ValueError, match="n_test=5000.*3000"):
-        build_splits(_data(test_file=PAPER_TEST, n_test=5000))
+        build_splits(_data(test_file=str(paper_test_file), n_test=5000))

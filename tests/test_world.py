@@ -7,7 +7,7 @@ import json
 from collections import deque
 
 import pytest
-from conftest import PAPER_TEST, free_cells_form_a_tree, worlds
+from conftest import free_cells_form_a_tree, worlds
 from hypothesis import given
 
 from pipeline.generate import world_stats
@@ -147,8 +147,8 @@ def test_json_input_is_not_mutated(example_world):
     assert obj == before
 
 
-def test_paper_file_loads_and_round_trips(paper_worlds):
-    lines = PAPER_TEST.read_text().splitlines()
+def test_paper_file_loads_and_round_trips(paper_worlds, paper_test_file):
+    lines = paper_test_file.read_text().splitlines()
     assert len(paper_worlds) == len(lines) == 3000
     for world, line in zip(paper_worlds, lines):
         assert json.dumps(world.to_json()) == line
