@@ -105,6 +105,7 @@ class TrainConfig:
     save_steps: int = 100
     save_total_limit: Optional[int] = None
     bf16: bool = False
+    torch_compile: bool = False
     max_grad_norm: float = 1.0
     num_epochs: float = 1.0
     report_to: list[str] = field(default_factory=lambda: ["mlflow"])

@@ -15,6 +15,7 @@ from pipeline.finetune import (
     TrainSettings,
     finetune,
     main,
+    _training_arguments,
     tokenize_conversations,
 )
 from pipeline.modeling import build_scratch_model, load_chat_format, load_model
@@ -162,6 +163,14 @@ def test_loss_falls_and_held_out_tokens_are_learned(tokenizer, conversations, tm
     assert result.token_accuracy > 0.4  # chance is 1/len(tokenizer), under 0.02
     assert result.global_step == 30
     assert result.tokens_trained > 0 and result.tokens_per_second > 0
+
+
+def test_precision_and_compile_settings_reach_the_trainer(tmp_path):
+    plain = _training_arguments(TrainSettings(**QUIET), tmp_path)
+    assert not plain.bf16 and not plain.torch_compile
+    tuned = _training_arguments(TrainSettings(bf16=True, torch_compile=True, **QUIET), tmp_path)
+    assert tuned.bf16 and tuned.torch_compile
+    assert tuned.use_cpu == (not torch.cuda.is_available())  # bf16 without a GPU is CPU autocast
 
 
 def test_bf16_autocast_trains_on_a_cpu(tokenizer, conversations, tmp_path):
