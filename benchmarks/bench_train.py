@@ -127,6 +127,7 @@ def main() -> None:
         settings = TrainSettings(
             max_steps=args.steps, per_device_batch_size=train_cfg.per_device_batch_size,
             learning_rate=train_cfg.learning_rate, packing=packing, bf16=bf16, max_length=max(lengths),
+            pad_to_multiple_of=train_cfg.pad_to_multiple_of,
             report_to=(), logging_steps=args.steps, save_steps=10 * args.steps, torch_threads=args.threads,
             seed=args.seed,
         )

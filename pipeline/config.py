@@ -16,9 +16,9 @@ from omegaconf import MISSING, DictConfig, OmegaConf
 from pipeline.texts import MAP_VARIANTS
 from pipeline.tracking import default_tracking_uri
 
-# transformers' attention kernels (model.attn_implementation). On a 2-core AMX CPU, "eager" (two batched matmuls
-# and a softmax) trains heads of 64-128 in bf16 faster than SDPA's CPU flash kernel; "sdpa" suits small heads
-# in fp32 and GPUs; "flash_attention_2" needs the flash-attn package and a GPU.
+# transformers' attention kernels (model.attn_implementation). On the 2-core AMX CPU, SDPA and "eager" (two
+# batched matmuls and a softmax) train heads of 64 in bf16 at about the same speed; eager is faster for one
+# head of 128. "flash_attention_2" needs the flash-attn package and a GPU.
 ATTENTION_IMPLEMENTATIONS = ("sdpa", "eager", "flash_attention_2")
 
 

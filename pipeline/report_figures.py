@@ -16,7 +16,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 from matplotlib.ticker import MaxNLocator
 
-from pipeline.tracking import PAPER_ROWS
+from pipeline.tracking import PAPER_ROWS, TRAIN_MAX_TAGS
 
 VARIANT_ORDER = ("marking-deadend", "no-marking", "no-backtrack", "no-marking-no-backtrack", "no-all",
                  "no-all-no-backtrack", "none", "cot", "dfs")
@@ -41,8 +41,8 @@ def _direction_order(item: tuple[str, pd.DataFrame]) -> tuple[int, str]:
 def train_box(episodes: pd.DataFrame) -> tuple[int, int] | None:
     """The train maximum (X, Y): from the jobs' ``train_max_x/y`` tags when they all carry the same one, else
     inferred as the largest sizes of the episodes marked interpolated (jobs logged before the tags existed)."""
-    if {"train_max_x", "train_max_y"} <= set(episodes.columns):
-        boxes = set(zip(episodes["train_max_x"], episodes["train_max_y"]))
+    if set(TRAIN_MAX_TAGS) <= set(episodes.columns):
+        boxes = set(zip(*(episodes[column] for column in TRAIN_MAX_TAGS)))
         if len(boxes) == 1 and not any(pd.isna(v) for v in next(iter(boxes))):
             x, y = next(iter(boxes))
             return int(x), int(y)

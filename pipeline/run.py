@@ -89,12 +89,16 @@ def _flatten(tree, prefix: str = ""):
         yield prefix, tree
 
 
+def _train_max(cfg: DictConfig) -> tuple[int, int]:
+    """The largest train world sides (X, Y): test worlds within both are interpolated."""
+    return max(cfg.data.train_size_x), max(cfg.data.train_size_y)
+
+
 def data_build_body(cfg: DictConfig, spec: TextSpec, step_dir: Path) -> None:
     _log_config(cfg.data, "data")
     train, test = build_splits(cfg.data)
-    train_max = (max(cfg.data.train_size_x), max(cfg.data.train_size_y))
     out = step_dir / "dataset"
-    summary = write_dataset(out, train, test, spec, train_max)
+    summary = write_dataset(out, train, test, spec, _train_max(cfg))
     mlflow.set_tag("dataset_sha256", summary["sha256"])
     mlflow.log_metrics({
         "n_train": summary["n_train"], "n_test": summary["n_test"],
@@ -199,7 +203,7 @@ def run_job(cfg: DictConfig) -> dict | None:
     tags = {"direction": direction, "variant": variant, "mode": mode, "seed": str(cfg.seed),
             "paper_row": PAPER_ROWS[variant]}
     work_dir = Path(cfg.work_dir)
-    train_max = {TRAIN_MAX_TAGS[0]: str(max(cfg.data.train_size_x)), TRAIN_MAX_TAGS[1]: str(max(cfg.data.train_size_y))}
+    train_max = dict(zip(TRAIN_MAX_TAGS, map(str, _train_max(cfg))))
     with mlflow.start_run(run_name=f"{direction}-{variant}-{mode}", tags={**tags, **train_max, KIND_TAG: JOB_KIND}) as job:
         mlflow.log_dict(OmegaConf.to_container(cfg, resolve=True, enum_to_str=True), "config.json")
 
