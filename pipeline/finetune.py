@@ -244,22 +244,30 @@ def split_eval(conversations: Sequence, fraction: float, seed: int) -> tuple[lis
 
 @torch.no_grad()
 def token_accuracy(model: PreTrainedModel, dataset: ConversationDataset, pad_token_id: int,
-                   batch_size: int = 16) -> float | None:
-    """Argmax next-token accuracy over every labelled (gpt) position; None if there is none."""
+                   batch_size: int = 16, *, sharded: bool = False) -> float | None:
+    """Argmax next-token accuracy over every labelled (gpt) position; None if there is none.
+
+    ``sharded``: the model is FSDP-wrapped, so only its root forward gathers the root's parameters (the
+    embedding, final norm and head); that forward computes full-vocabulary logits.
+    """
     if len(dataset) == 0:
         return None
     model.eval()
     collate = RightPadCollator(pad_token_id)
     order = sorted(range(len(dataset)), key=lambda i: len(dataset[i]["input_ids"]))
     correct = total = 0
-    head, device = model.get_output_embeddings(), model.device
+    head, device = model.get_output_embeddings(), next(model.parameters()).device
     for start in range(0, len(order), batch_size):
         batch = collate([dataset[i] for i in order[start:start + batch_size]])
-        hidden = model.base_model(input_ids=batch["input_ids"].to(device)).last_hidden_state[:, :-1]
+        input_ids = batch["input_ids"].to(device)
         targets = batch["labels"][:, 1:].to(device)
         keep = targets != IGNORE_INDEX
-        # Project only labelled positions: a full-vocabulary logits tensor would dwarf the batch.
-        predictions = head(hidden[keep]).argmax(-1)
+        if sharded:
+            predictions = model(input_ids=input_ids).logits[:, :-1][keep].argmax(-1)
+        else:
+            # Project only labelled positions: a full-vocabulary logits tensor would dwarf the batch.
+            hidden = model.base_model(input_ids=input_ids).last_hidden_state[:, :-1]
+            predictions = head(hidden[keep]).argmax(-1)
         correct += (predictions == targets[keep]).sum().item()
         total += keep.sum().item()
     return correct / total if total else None
@@ -362,10 +370,16 @@ def _finetune(model, tokenizer, fmt, conversations, settings, output_dir, callba
 
     model_dir = output_dir / MODEL_DIR
     trainer.model.config.use_cache = True  # Trainer turns the cache off for training; decoding wants it
+    if trainer.is_fsdp_enabled:
+        # Trainer.save_model writes nothing under a SHARDED_STATE_DICT plugin (the checkpoints' setting):
+        # gather the full weights for the final model, which eval loads as plain safetensors.
+        trainer.accelerator.state.fsdp_plugin.set_state_dict_type("FULL_STATE_DICT")
     trainer.save_model(str(model_dir))
-    save_chat_format(fmt, model_dir)
+    if trainer.is_world_process_zero():
+        save_chat_format(fmt, model_dir)
     state = trainer.state
-    accuracy = token_accuracy(trainer.model, eval_data, tokenizer.pad_token_id, settings.per_device_batch_size)
+    accuracy = token_accuracy(trainer.model, eval_data, tokenizer.pad_token_id, settings.per_device_batch_size,
+                              sharded=trainer.is_fsdp_enabled)
     if accuracy is not None and "mlflow" in settings.report_to and trainer.is_world_process_zero():
         import mlflow
 
