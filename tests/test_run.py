@@ -7,6 +7,8 @@ from pathlib import Path
 
 import mlflow
 import pytest
+import torch
+from safetensors.torch import load_file
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 
@@ -103,3 +105,37 @@ def test_checkpoint_curve_is_logged_by_training_step(tmp_path):
 def test_a_curve_without_logged_checkpoints_is_refused(tmp_path):
     with pytest.raises(ConfigError, match="train.log_checkpoints=true"):
         run_job(_cfg(tmp_path, "eval.curve=true"))
+
+
+# accelerate's single-process launcher: the same `accelerate launch` path as FSDP, on a CPU.
+SINGLE_PROCESS = """compute_environment: LOCAL_MACHINE
+distributed_type: 'NO'
+num_processes: 1
+num_machines: 1
+mixed_precision: 'no'
+use_cpu: true
+"""
+
+
+@pytest.mark.slow
+def test_a_launched_finetune_trains_exactly_what_the_in_process_one_does(tmp_path):
+    config = tmp_path / "single.yaml"
+    config.write_text(SINGLE_PROCESS)
+    in_process = _cfg(tmp_path, "variant=none")
+    launched = _cfg(tmp_path, "variant=none", f"train.accelerate_config={config}")
+    scores = [run_job(launched), run_job(in_process)]
+    for metrics in scores:
+        metrics.pop("step_seconds")  # wall time
+    assert scores[0] == scores[1]
+    client = mlflow.MlflowClient(launched.tracking.uri)
+    runs = [client.get_run(r.data.tags[step_run_tag("finetune")]) for r in _job_runs(launched)]
+    assert runs[0].info.run_id != runs[1].info.run_id
+    # The launched process logged into the step's run: the Trainer's curve and the summary metrics.
+    assert [m.step for m in client.get_metric_history(runs[0].info.run_id, "loss")] == [2]  # toy: logging_steps=2
+    for key in ("final_loss", "tokens_trained", "global_step"):
+        assert runs[0].data.metrics[key] == runs[1].data.metrics[key]
+    weights = [load_file(Path(mlflow.artifacts.download_artifacts(run_id=r.info.run_id, artifact_path="model",
+                                                                  tracking_uri=launched.tracking.uri))
+                         / "model.safetensors") for r in runs]
+    assert weights[0].keys() == weights[1].keys()
+    assert all(torch.equal(weights[0][k], weights[1][k]) for k in weights[0])
