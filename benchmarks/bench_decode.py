@@ -1,6 +1,6 @@
 """Decoding speed: cached multi-turn episodes vs the two baselines, and batched vs unbatched answers.
 
-    .venv/bin/python benchmarks/bench_decode.py [--worlds 32] [--repeats 2] [--threads 2]
+    .venv/bin/python benchmarks/bench_decode.py [--worlds 32] [--repeats 2] [--threads 2] [--device cuda]
 
 One randomly initialised Llama (CPU default size: hidden 128, 4 layers, 2 heads, intermediate 512) and the
 same generated worlds (sides 3-6) for every contender. An untrained model neither ends its turns nor
@@ -51,8 +51,8 @@ def generate_batched(model, tokenizer, prompts, batch_size, max_new_tokens):
     for start in range(0, len(encoded), batch_size):
         batch = encoded[start:start + batch_size]
         width = max(map(len, batch))
-        ids = torch.tensor([[tokenizer.pad_token_id] * (width - len(p)) + p for p in batch])
-        mask = torch.tensor([[0] * (width - len(p)) + [1] * len(p) for p in batch])
+        ids = torch.tensor([[tokenizer.pad_token_id] * (width - len(p)) + p for p in batch], device=model.device)
+        mask = torch.tensor([[0] * (width - len(p)) + [1] * len(p) for p in batch], device=model.device)
         out = model.generate(ids, attention_mask=mask, do_sample=False, max_new_tokens=max_new_tokens,
                              eos_token_id=stop, pad_token_id=tokenizer.pad_token_id)[:, width:]
         for row in out.tolist():
@@ -70,6 +70,7 @@ def main() -> None:
     parser.add_argument("--answer-tokens", type=int, default=128)
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
     parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
 
@@ -79,8 +80,8 @@ def main() -> None:
     torch.manual_seed(0)
     config = LlamaConfig(vocab_size=len(tokenizer), hidden_size=128, num_hidden_layers=4, num_attention_heads=2,
                          num_key_value_heads=2, intermediate_size=512, max_position_embeddings=4096)
-    model = LlamaForCausalLM(config).eval()
-    print(f"model: {sum(p.numel() for p in model.parameters()) / 1e6:.2f}M params, threads {args.threads}; "
+    model = LlamaForCausalLM(config).eval().to(args.device)
+    print(f"model: {sum(p.numel() for p in model.parameters()) / 1e6:.2f}M params on {args.device}, threads {args.threads}; "
           f"{len(worlds)} worlds, sides 3-6")
 
     def decoder(batch_size, **caps):

@@ -1,4 +1,4 @@
-"""Training throughput: the plain padded Trainer against ours, and FLOP/s against this CPU's matmul peaks.
+"""Training throughput: the plain padded Trainer against ours, and FLOP/s against this machine's matmul peaks.
 
     python benchmarks/bench_train.py [--data cpu|paper] [--steps 20] [--threads 2]
                                      [--model conf/model/tiny.yaml] [--train conf/train/cpu.yaml]
@@ -15,8 +15,9 @@ conversations through `pipeline.finetune.finetune`, with the default job's batch
 worlds (about 300-480 tokens). ``--data paper``: FWD conversations of 300-1,500 tokens, where padding costs more.
 
 tokens/s counts real tokens. Achieved FLOP/s counts useful work only (6N per token plus causal attention,
-padding excluded), so it compares with a matmul peak. Peaks (1024^3 matmuls, fp32 and bf16) are measured
-before and after the runs, because this machine is shared and its speed moves; the best is used.
+padding excluded), so it compares with a matmul peak. Peaks (fp32 and bf16 matmuls: 1024^3 on a CPU,
+8192^3 on a GPU, where the Trainer then trains) are measured before and after the runs, because this machine
+is shared and its speed moves; the best is used.
 """
 
 from __future__ import annotations
@@ -42,24 +43,39 @@ from pipeline.tokenizer import build_word_tokenizer
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def matmul_peak(threads: int, dtype: torch.dtype, size: int = 1024, seconds: float = 2.0) -> float:
-    """Best GFLOP/s of square ``dtype`` matmuls over a few timed rounds on ``threads`` threads."""
+# Training runs where the Trainer puts it: the GPU when there is one. Peaks are measured on that device.
+DEVICE = "cuda" if torch.cuda.is_available() else "cpu"
+
+
+def matmul_peak(threads: int, dtype: torch.dtype, size: int | None = None, seconds: float = 2.0) -> float:
+    """Best GFLOP/s of square ``dtype`` matmuls over a few timed rounds (CPU: on ``threads`` threads; GPU:
+    8192^3 products, synchronised before each clock read)."""
     torch.set_num_threads(threads)
-    a, b = torch.randn(size, size, dtype=dtype), torch.randn(size, size, dtype=dtype)
+    size = size or (8192 if DEVICE == "cuda" else 1024)
+    a, b = (torch.randn(size, size, dtype=dtype, device=DEVICE) for _ in range(2))
+    sync = torch.cuda.synchronize if DEVICE == "cuda" else (lambda: None)
     for _ in range(3):
         a @ b
+    sync()
     best = 0.0
     for _ in range(5):
         n, start = 0, time.perf_counter()
         while time.perf_counter() - start < seconds / 5:
             torch.matmul(a, b)
             n += 1
+            sync()
         best = max(best, 2 * size**3 * n / (time.perf_counter() - start) / 1e9)
     return best
 
 
 def peaks(threads: int) -> dict[str, float]:
     return {"fp32": matmul_peak(threads, torch.float32), "bf16": matmul_peak(threads, torch.bfloat16)}
+
+
+def device_line(threads: int) -> str:
+    if DEVICE == "cuda":
+        return f"gpu: {torch.cuda.get_device_name()}; torch {torch.__version__}"
+    return f"cpu: {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}; torch {torch.__version__}, {threads} threads"
 
 
 def cpu_conversations(n: int, seed: int) -> list[list[dict]]:
@@ -106,8 +122,7 @@ def main() -> None:
     probe = build_scratch_model(tokenizer, **model_kwargs)
     flops_per_real_token = training_flops(probe, lengths) / sum(lengths)
     default = "bf16" if train_cfg.bf16 else "fp32"
-    print(f"cpu: {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}; torch {torch.__version__}, "
-          f"{args.threads} threads")
+    print(device_line(args.threads))
     print(f"data ({args.data}): {len(conversations)} conversations, tokens min {min(lengths)} median "
           f"{statistics.median(lengths):.0f} max {max(lengths)}; vocab {len(tokenizer)}")
     print(f"model ({Path(args.model).name}): {count_parameters(probe) / 1e6:.3f}M parameters, hidden "
