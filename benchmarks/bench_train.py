@@ -105,8 +105,11 @@ def main() -> None:
     parser.add_argument("--model", default=str(ROOT / "conf" / "model" / "tiny.yaml"), help="a scratch model yaml")
     parser.add_argument("--train", default=str(ROOT / "conf" / "train" / "cpu.yaml"), help="a train yaml")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--only", choices=("padded-fp32", "packed-fp32", "packed-default"), action="append",
-                        help="run only these (repeatable)")
+    parser.add_argument("--only", choices=("padded-fp32", "packed-fp32", "packed-default", "packed-compiled"),
+                        action="append", help="run only these (repeatable)")
+    parser.add_argument("--compile", action="store_true",
+                        help="also run packed-compiled: packed-default with train.torch_compile (its compile time "
+                             "counts in tokens/s; inductor's on-disk cache makes a second run's compile shorter)")
     args = parser.parse_args()
     transformers.logging.set_verbosity_error()
 
@@ -134,9 +137,12 @@ def main() -> None:
 
     measured = [peaks(args.threads)]
     print("matmul peak before: " + ", ".join(f"{k} {v:.1f} GFLOP/s" for k, v in measured[0].items()))
-    runs = {"padded-fp32": (False, False), "packed-fp32": (True, False), "packed-default": (True, bool(train_cfg.bf16))}
+    runs = {"padded-fp32": (False, False, False), "packed-fp32": (True, False, False),
+            "packed-default": (True, bool(train_cfg.bf16), False)}
+    if args.compile:
+        runs["packed-compiled"] = (True, bool(train_cfg.bf16), True)
     results = {}
-    for name, (packing, bf16) in runs.items():
+    for name, (packing, bf16, compiled) in runs.items():
         if args.only and name not in args.only:
             continue
         settings = TrainSettings(
@@ -144,7 +150,7 @@ def main() -> None:
             learning_rate=train_cfg.learning_rate, packing=packing, bf16=bf16, max_length=max(lengths),
             pad_to_multiple_of=train_cfg.pad_to_multiple_of,
             report_to=(), logging_steps=args.steps, save_steps=10 * args.steps, torch_threads=args.threads,
-            seed=args.seed,
+            seed=args.seed, torch_compile=compiled,
         )
         with tempfile.TemporaryDirectory() as out:
             model = build_scratch_model(tokenizer, **model_kwargs)
@@ -161,7 +167,7 @@ def main() -> None:
           + "; using the best: " + ", ".join(f"{k} {v:.1f}" for k, v in peak.items()))
     if "padded-fp32" in results:
         base = results["padded-fp32"].tokens_per_second
-        for name in ("packed-fp32", "packed-default"):
+        for name in ("packed-fp32", "packed-default", "packed-compiled"):
             if name in results:
                 print(f"{name.replace('default', default)} / padded-fp32 tokens/s: "
                       f"{results[name].tokens_per_second / base:.2f}x")
