@@ -169,7 +169,7 @@ def main() -> None:
         runner.run("job-vllm", [python, "-m", "pipeline.run", *hf_job, "model.dtype=bfloat16", "eval.backend=vllm"], 240)
     if "tests" in wanted:
         xdist = subprocess.run([python, "-c", "import xdist"], capture_output=True).returncode == 0
-        runner.run("tests", [python, "-m", "pytest", "-q", *(["-n", "8"] if xdist else []), "tests"], 420)
+        runner.run("tests", [python, "-m", "pytest", "-q", *(["-n", "auto"] if xdist else []), "tests"], 420)
     if "bench-train" in wanted:
         runner.run("bench-train", [python, "benchmarks/bench_train.py", "--steps", "100"], 180)
     if "bench-decode" in wanted:
