@@ -13,6 +13,8 @@ Checks, in order (each a subprocess with its own time limit, all inside ``--budg
 - ``job-fsdp``: the same model through ``train.accelerate_config``: the finetune step runs
   ``accelerate launch`` with ``conf/accelerate/fsdp8.yaml`` rewritten for the GPUs present (FSDP2, full
   sharding, activation checkpointing, bf16 mixed precision); eval loads the saved full weights.
+- ``fsdp-resume``: the FSDP job interrupted (SIGTERM to its process group) once its step-50 checkpoint is
+  complete, then run again with the same command: it must resume from that sharded checkpoint and finish.
 - ``vllm``: whether vLLM imports; if it does, the same model through ``eval.backend=vllm``.
 - ``tests``: the test suite, with the GPU visible (pytest-xdist if installed).
 - ``bench-train`` / ``bench-decode``: the two benchmarks on the GPU.
@@ -26,13 +28,15 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-CHECKS = ("env", "job-default", "job-hf-bf16", "job-fsdp", "vllm", "tests", "bench-train", "bench-decode")
+CHECKS = ("env", "job-default", "job-hf-bf16", "job-fsdp", "fsdp-resume", "vllm", "tests", "bench-train",
+          "bench-decode")
 # The word-level chat format (pipeline.chat.WORD_LEVEL_FORMAT) for the local model's own tokenizer.
 WORD_CHAT = ["model.chat_format.human_prefix='<human>'", "model.chat_format.gpt_prefix='<gpt>'",
              "model.chat_format.turn_end='</s>'", "model.chat_format.bos='<s>'"]
@@ -77,6 +81,7 @@ class Runner:
         self.log = (out / "gpu_paths.log").open("a")
         self.deadline = time.monotonic() + budget
         self.results: dict[str, dict] = {}
+        self.output = ""  # the last check's output
 
     def run(self, name: str, command: list[str], limit: float, env: dict | None = None) -> bool:
         left = self.deadline - time.monotonic()
@@ -97,6 +102,7 @@ class Runner:
             output = timeout.stdout.decode() if isinstance(timeout.stdout, bytes) else (timeout.stdout or "")
             status = f"timed out after {limit:.0f} s"
         seconds = time.monotonic() - started
+        self.output = output
         self.log.write(output)
         self.log.flush()
         tail = output.strip().splitlines()[-12:]
@@ -104,6 +110,30 @@ class Runner:
         print(f"=== {name}: {status} in {seconds:.1f} s", flush=True)
         self.results[name] = {"status": status, "seconds": round(seconds, 1)}
         return status == "ok"
+
+
+    def interrupt(self, name: str, command: list[str], marker: str, root: Path, limit: float) -> bool:
+        """Run ``command`` in its own process group and SIGTERM the group once a file matching the glob
+        ``marker`` exists under ``root``; True if it was interrupted that way."""
+        print(f"=== {name}: {' '.join(command)} (interrupted at {marker})", flush=True)
+        self.log.write(f"\n=== {name}: {' '.join(command)}\n")
+        self.log.flush()
+        started, deadline = time.monotonic(), min(time.monotonic() + limit, self.deadline - 10)
+        proc = subprocess.Popen(command, cwd=ROOT, stdout=self.log, stderr=subprocess.STDOUT, start_new_session=True)
+        seen = False
+        while proc.poll() is None and time.monotonic() < deadline and not seen:
+            seen = any(root.glob(marker))
+            time.sleep(0.5)
+        os.killpg(proc.pid, signal.SIGTERM) if proc.poll() is None else None
+        try:
+            proc.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+        status = "interrupted after the marker" if seen else f"no marker (rc {proc.returncode})"
+        print(f"=== {name}: {status} in {time.monotonic() - started:.1f} s", flush=True)
+        self.results[name] = {"status": status, "seconds": round(time.monotonic() - started, 1)}
+        return seen
 
 
 def job_metrics(uri: str) -> list[dict]:
@@ -151,20 +181,28 @@ def main() -> None:
                               capture_output=True, text=True).stdout.strip() or 0)
     hf_job = ["model=hf", f"model.path={args.work / 'local-llama'}", "model.max_length=2048",
               f"train.max_steps={args.hf_steps}", "train.learning_rate=3e-4", "train.save_steps=1000",
-              "eval.n_worlds=64", *WORD_CHAT, *store]  # later overrides win: --toy's come last
+              "eval.n_worlds=64", "eval.max_new_tokens=512", *WORD_CHAT, *store]  # --toy's overrides come last
 
     if "env" in wanted:
         runner.run("env", ["nvidia-smi"], 30)
         runner.run("env-python", [python, "-c", ENV_SCRIPT], 60)
     if "job-default" in wanted:
         runner.run("job-default", [python, "-m", "pipeline.run", *store], 300)
-    if {"job-hf-bf16", "job-fsdp", "vllm"} & set(wanted) and not (args.work / "local-llama").is_dir():
+    if {"job-hf-bf16", "job-fsdp", "fsdp-resume", "vllm"} & set(wanted) and not (args.work / "local-llama").is_dir():
         make_local_model(args.work / "local-llama", *((64, 2, 2) if args.toy else ()))
     if "job-hf-bf16" in wanted:
         runner.run("job-hf-bf16", [python, "-m", "pipeline.run", *hf_job, "model.dtype=bfloat16"], 240)
+    fsdp = f"train.accelerate_config={fsdp_config(args.work / f'fsdp{gpus}.yaml', max(gpus, 1))}"
     if "job-fsdp" in wanted:
-        config = fsdp_config(args.work / f"fsdp{gpus}.yaml", max(gpus, 1))
-        runner.run("job-fsdp", [python, "-m", "pipeline.run", *hf_job, f"train.accelerate_config={config}"], 240)
+        runner.run("job-fsdp", [python, "-m", "pipeline.run", *hf_job, fsdp], 240)
+    if "fsdp-resume" in wanted:
+        resume_root = args.work / "resume"
+        command = [python, "-m", "pipeline.run", *hf_job, fsdp, "train.max_steps=100", "train.save_steps=50",
+                   f"tracking.root={resume_root}"]
+        marker = "work/finetune/*/checkpoints/checkpoint-50/trainer_state.json"
+        if runner.interrupt("fsdp-resume-1", command, marker, resume_root, 240):
+            runner.run("fsdp-resume-2", command, 240)
+            runner.results["fsdp-resume-2"]["resumed"] = "resuming from" in runner.output
     if "vllm" in wanted and runner.run("vllm", [python, "-c", "import vllm; print('vllm', vllm.__version__)"], 60):
         runner.run("job-vllm", [python, "-m", "pipeline.run", *hf_job, "model.dtype=bfloat16", "eval.backend=vllm"], 240)
     if "tests" in wanted:
