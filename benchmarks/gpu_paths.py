@@ -111,7 +111,6 @@ class Runner:
         self.results[name] = {"status": status, "seconds": round(seconds, 1)}
         return status == "ok"
 
-
     def interrupt(self, name: str, command: list[str], marker: str, root: Path, limit: float) -> bool:
         """Run ``command`` in its own process group and SIGTERM the group once a file matching the glob
         ``marker`` exists under ``root``; True if it was interrupted that way."""
@@ -124,7 +123,8 @@ class Runner:
         while proc.poll() is None and time.monotonic() < deadline and not seen:
             seen = any(root.glob(marker))
             time.sleep(0.5)
-        os.killpg(proc.pid, signal.SIGTERM) if proc.poll() is None else None
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGTERM)
         try:
             proc.wait(timeout=60)
         except subprocess.TimeoutExpired:
