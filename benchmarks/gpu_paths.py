@@ -32,14 +32,16 @@ import signal
 import subprocess
 import sys
 import time
+from dataclasses import asdict
 from pathlib import Path
+
+from pipeline.chat import WORD_LEVEL_FORMAT
 
 ROOT = Path(__file__).resolve().parents[1]
 CHECKS = ("env", "job-default", "job-hf-bf16", "job-fsdp", "fsdp-resume", "vllm", "tests", "bench-train",
           "bench-decode")
-# The word-level chat format (pipeline.chat.WORD_LEVEL_FORMAT) for the local model's own tokenizer.
-WORD_CHAT = ["model.chat_format.human_prefix='<human>'", "model.chat_format.gpt_prefix='<gpt>'",
-             "model.chat_format.turn_end='</s>'", "model.chat_format.bos='<s>'"]
+# The word-level chat format for the local model's own tokenizer, as Hydra overrides.
+WORD_CHAT = [f"model.chat_format.{key}='{value}'" for key, value in asdict(WORD_LEVEL_FORMAT).items()]
 ENV_SCRIPT = """
 import torch, transformers, accelerate, mlflow, hydra
 print("torch", torch.__version__, "cuda", torch.version.cuda, "| transformers", transformers.__version__,

@@ -40,19 +40,14 @@ def make_decoder(cfg, model_dir: str) -> Decoder:
         from pipeline.vllm_backend import VLLMDecoder
 
         return VLLMDecoder(model_dir, tokenizer, fmt, dtype=cfg.model.dtype, **common)
+    import torch
+
     from pipeline.decode import HFDecoder
 
     model = load_model(model_dir, dtype=cfg.model.dtype, trust_remote_code=cfg.model.trust_remote_code,
                        attn_implementation=cfg.model.attn_implementation)
     # Decode where the Trainer trained: on the GPU when there is one.
-    return HFDecoder(model.to(decode_device()), tokenizer, fmt, **common)
-
-
-def decode_device() -> str:
-    """``cuda`` when a GPU is visible, else ``cpu``."""
-    import torch
-
-    return "cuda" if torch.cuda.is_available() else "cpu"
+    return HFDecoder(model.to("cuda" if torch.cuda.is_available() else "cpu"), tokenizer, fmt, **common)
 
 
 def _base_record(index: int, stats: dict) -> dict:
