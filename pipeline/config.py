@@ -5,6 +5,9 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+import shutil
+import sys
 from pathlib import Path
 from dataclasses import dataclass, field
 from enum import Enum
@@ -37,6 +40,12 @@ class Baseline(str, Enum):
     none = "none"
     cot = "cot"
     dfs = "dfs"
+
+
+class CompileMode(str, Enum):
+    none = "none"
+    regional = "regional"   # each repeated block (decoder layer) compiled in place; one graph for all of them
+    full = "full"
 
 
 class ModelKind(str, Enum):
@@ -105,7 +114,7 @@ class TrainConfig:
     save_steps: int = 100
     save_total_limit: Optional[int] = None
     bf16: bool = False
-    torch_compile: bool = False
+    torch_compile: CompileMode = CompileMode.none   # none | regional | full
     max_grad_norm: float = 1.0
     num_epochs: float = 1.0
     report_to: list[str] = field(default_factory=lambda: ["mlflow"])
@@ -218,6 +227,12 @@ def validate(cfg: DictConfig) -> str:
     if cfg.model.attn_implementation not in ATTENTION_IMPLEMENTATIONS:
         raise ConfigError(f"model.attn_implementation={cfg.model.attn_implementation!r}: allowed: "
                           f"{', '.join(ATTENTION_IMPLEMENTATIONS)}")
+    if CompileMode(cfg.train.torch_compile) is not CompileMode.none and not _cuda_visible() and not cxx_compiler():
+        raise ConfigError(
+            f"train.torch_compile={CompileMode(cfg.train.torch_compile).value}: torch.compile on a CPU needs a C++ "
+            f"compiler, and {_cxx_name()!r} is not on PATH; install one (Debian: apt install g++), point $CXX at "
+            "one, or set train.torch_compile=none"
+        )
     if ModelKind(cfg.model.kind) is ModelKind.hf and not cfg.model.path:
         raise ConfigError("model.kind=hf needs model.path: a local directory with a causal LM and its tokenizer")
     if data.test_file and not Path(data.test_file).expanduser().is_file():
@@ -228,6 +243,22 @@ def validate(cfg: DictConfig) -> str:
             raise ConfigError(f"model.path={cfg.model.path!r}: expected a local directory with config.json and "
                               "*.safetensors weights (models load from safetensors only)")
     return variant
+
+
+def _cxx_name() -> str:
+    # inductor's choice on a CPU: $CXX, else g++ (clang++ on macOS).
+    return os.environ.get("CXX") or ("clang++" if sys.platform == "darwin" else "g++")
+
+
+def cxx_compiler() -> str | None:
+    """Path of the C++ compiler torch.compile (inductor) would build CPU kernels with, or None if missing."""
+    return shutil.which(_cxx_name())
+
+
+def _cuda_visible() -> bool:
+    import torch
+
+    return torch.cuda.is_available()
 
 
 def _pair(value: Any, name: str) -> tuple:

@@ -30,7 +30,7 @@ _STEP_KEYS = ("accelerate_config", "log_checkpoints")
 
 def train_settings(cfg: DictConfig) -> TrainSettings:
     """TrainSettings from the job config (the job's seed seeds training)."""
-    values = OmegaConf.to_container(cfg.train, resolve=True)
+    values = OmegaConf.to_container(cfg.train, resolve=True, enum_to_str=True)
     for key in _STEP_KEYS:
         values.pop(key)
     return TrainSettings.from_dict({**values, "seed": cfg.seed})

@@ -80,8 +80,19 @@ def test_bad_values_fail_before_any_work(override, message):
         validate(cfg)
 
 
+def test_compiling_on_a_cpu_without_a_cxx_compiler_is_refused_naming_the_way_out(monkeypatch):
+    monkeypatch.setenv("CXX", "no-such-c++-compiler")
+    monkeypatch.setattr("pipeline.config._cuda_visible", lambda: False)
+    with pytest.raises(ConfigError, match=r"train.torch_compile=regional.*'no-such-c\+\+-compiler'.*"
+                                          r"train.torch_compile=none"):
+        validate(_compose(["train.torch_compile=regional"]))
+    assert validate(_compose(["train.torch_compile=none"])) == "marking-deadend"
+    monkeypatch.setenv("CXX", "sh")  # any program on PATH
+    assert validate(_compose(["train.torch_compile=full"])) == "marking-deadend"
+
+
 @pytest.mark.parametrize("override", ["variant=bogus", "direction=up", "mode=sometimes", "data.frame=abc",
-                                      "train.no_such_key=1"])
+                                      "train.no_such_key=1", "train.torch_compile=true"])
 def test_unknown_names_fail_at_compose_time(override):
     with pytest.raises(Exception) as info:
         _compose([override])

@@ -1,11 +1,12 @@
 import json
 import math
+import os
 import random
 
 import mlflow
 import pytest
 import torch
-from transformers import DataCollatorWithFlattening, TrainerCallback
+from transformers import DataCollatorWithFlattening, Trainer, TrainerCallback
 
 from pipeline.chat import IGNORE_INDEX, WORD_LEVEL_FORMAT
 from pipeline.finetune import (
@@ -15,6 +16,7 @@ from pipeline.finetune import (
     TrainSettings,
     finetune,
     main,
+    _dynamo_environment,
     _training_arguments,
     tokenize_conversations,
 )
@@ -168,12 +170,53 @@ def test_loss_falls_and_held_out_tokens_are_learned(tokenizer, conversations, tm
 def test_precision_and_compile_settings_reach_the_trainer(tmp_path):
     plain = _training_arguments(TrainSettings(**QUIET), tmp_path)
     assert not plain.bf16 and not plain.torch_compile
-    tuned = _training_arguments(TrainSettings(bf16=True, torch_compile=True, **QUIET), tmp_path)
+    with _dynamo_environment():
+        tuned = _training_arguments(TrainSettings(bf16=True, torch_compile="full", **QUIET), tmp_path)
+        regional = _training_arguments(TrainSettings(torch_compile="regional", **QUIET), tmp_path)
     assert tuned.bf16 and tuned.torch_compile
+    assert not regional.torch_compile  # compiled in place by finetune, not by Trainer
     assert tuned.use_cpu == (not torch.cuda.is_available())  # bf16 without a GPU is CPU autocast
 
 
-def test_bf16_autocast_trains_on_a_cpu(tokenizer, conversations, tmp_path):
+@pytest.mark.parametrize("scope, backend", [("none", "NO"), ("regional", "NO"), ("full", "INDUCTOR")])
+def test_the_compile_scope_reaches_accelerate_and_does_not_outlive_the_trainer(
+        scope, backend, tokenizer, tmp_path, monkeypatch):
+    # What an earlier compiled job (or a launcher) left in the environment must not decide this job's scope.
+    monkeypatch.setenv("ACCELERATE_DYNAMO_BACKEND", "INDUCTOR")
+    monkeypatch.setenv("ACCELERATE_DYNAMO_USE_REGIONAL_COMPILATION", "True")
+    before = dict(os.environ)
+    settings = TrainSettings(torch_compile=scope, **QUIET)
+    with _dynamo_environment():
+        trainer = Trainer(model=tiny_model(tokenizer), args=_training_arguments(settings, tmp_path))
+    plugin = trainer.accelerator.state.dynamo_plugin
+    assert (plugin.backend.value, bool(plugin.use_regional_compilation)) == (backend, False)
+    assert dict(os.environ) == before
+
+
+@pytest.mark.slow  # compiling takes about 50 s on 2 cores with an empty cache
+def test_regional_compile_trains_what_eager_trains_and_saves_plain_weights(tokenizer, conversations, tmp_path):
+    # One batch width (pad_to_multiple_of covers every length): one compiled graph, so this stays short.
+    settings = dict(max_steps=3, pad_to_multiple_of=256, **QUIET)
+    eager = finetune(tiny_model(tokenizer), tokenizer, WORD_LEVEL_FORMAT, conversations, TrainSettings(**settings),
+                     tmp_path / "eager")
+    model, seen = tiny_model(tokenizer), []
+
+    class Compiled(TrainerCallback):
+        def on_step_end(self, args, state, control, **kwargs):
+            seen.append([layer._compiled_call_impl is not None for layer in model.model.layers])
+
+    compiled = finetune(model, tokenizer, WORD_LEVEL_FORMAT, conversations,
+                        TrainSettings(torch_compile="regional", **settings), tmp_path / "compiled",
+                        callbacks=[Compiled()])
+    assert seen == [[True, True]] * 3  # each decoder layer compiled while training ...
+    assert all(layer._compiled_call_impl is None for layer in model.model.layers)  # ... and eager after
+    assert compiled.final_loss == pytest.approx(eager.final_loss, rel=1e-3)
+    a, b = load_model(eager.model_dir).state_dict(), load_model(compiled.model_dir).state_dict()
+    assert a.keys() == b.keys()
+    assert all(torch.allclose(a[k], b[k], atol=1e-4) for k in a)
+
+
+def test_bf16_autocast_trains_and_keeps_fp32_master_weights(tokenizer, conversations, tmp_path):
     repeated = conversations[:2] * 24
     settings = TrainSettings(max_steps=30, bf16=True, **QUIET)
     model = tiny_model(tokenizer)
