@@ -1,15 +1,23 @@
 """Training throughput: the plain padded Trainer against ours, and FLOP/s against this machine's matmul peaks.
 
-    python benchmarks/bench_train.py [--data cpu|paper] [--steps 20] [--threads 2]
+    python benchmarks/bench_train.py [--data cpu|paper] [--steps 60] [--skip 10] [--threads 2]
                                      [--model conf/model/tiny.yaml] [--train conf/train/cpu.yaml]
 
 Every run trains the same scratch model (shape from ``--model``, the CPU default unless told) on the same
 conversations through `pipeline.finetune.finetune`, with the default job's batch size and learning rate:
 
-- ``padded fp32``: the plain Trainer: random batches padded to the longest, an attention mask, fp32.
-- ``packed fp32``: our length-grouped batches (right-padded, no mask), fp32.
-- ``packed <default>``: the same at the precision of ``--train`` (the CPU default trains with bf16 autocast,
-  which runs matmuls on the CPU's AMX/AVX512-BF16 units and keeps fp32 master weights).
+- ``padded fp32``: the plain Trainer: random batches padded to the longest, an attention mask, fp32, eager.
+- ``packed fp32``: our length-grouped batches (right-padded, no mask), fp32, eager.
+- ``packed <precision>``: the same at the precision of ``--train`` (the CPU default trains with bf16 autocast,
+  which runs matmuls on the CPU's AMX/AVX512-BF16 units and keeps fp32 master weights), eager.
+- ``default``: exactly what ``--train`` sets, its ``torch_compile`` scope included (the CPU default:
+  ``regional``). Only when that scope is not ``none``.
+
+Each run prints two rates: over all its steps (compiling included), and in steady state: the median rate of
+the steps after the first ``--skip`` (compiling, and the kernels oneDNN builds for each new batch width,
+mostly done). The time the steps took over the steady rate (compiling, mostly) is printed too. Inductor keeps
+compiled kernels on disk (``TORCHINDUCTOR_CACHE_DIR``): a second run compiles from that cache, in a fraction
+of the time.
 
 ``--data cpu`` (the default) is what the default job trains on: BWD marking-deadend conversations of 2..4-cell
 worlds (about 300-480 tokens). ``--data paper``: FWD conversations of 300-1,500 tokens, where padding costs more.
@@ -32,6 +40,7 @@ from pathlib import Path
 import torch
 import transformers
 from omegaconf import OmegaConf
+from transformers import TrainerCallback
 
 from pipeline.chat import WORD_LEVEL_FORMAT, encode_conversation
 from pipeline.finetune import TrainSettings, finetune
@@ -78,6 +87,26 @@ def device_line(threads: int) -> str:
     return f"cpu: {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}; torch {torch.__version__}, {threads} threads"
 
 
+class StepClock(TrainerCallback):
+    """Wall time and real tokens of every optimizer step."""
+
+    def __init__(self):
+        self.steps: list[tuple[float, int]] = []
+        self._start, self._tokens = 0.0, 0
+
+    def on_step_begin(self, args, state, control, **kwargs):
+        self._start = time.perf_counter()
+
+    def on_step_end(self, args, state, control, **kwargs):
+        self.steps.append((time.perf_counter() - self._start, state.num_input_tokens_seen - self._tokens))
+        self._tokens = state.num_input_tokens_seen
+
+    def steady(self, skip: int) -> float:
+        """Median real tokens per second of the steps after the first ``skip``: a step that compiles for a new
+        shape, or that a neighbour on this shared machine slowed, does not move it."""
+        return statistics.median(n / t for t, n in self.steps[skip:])
+
+
 def cpu_conversations(n: int, seed: int) -> list[list[dict]]:
     """What the default job trains on (conf/data/cpu.yaml sizes; BWD marking-deadend, optimal setting)."""
     data = OmegaConf.load(ROOT / "conf" / "data" / "cpu.yaml")
@@ -100,16 +129,14 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", choices=("cpu", "paper"), default="cpu")
     parser.add_argument("--conversations", type=int, default=600)
-    parser.add_argument("--steps", type=int, default=20)
+    parser.add_argument("--steps", type=int, default=60)
+    parser.add_argument("--skip", type=int, default=10, help="steps left out of the steady-state rate")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--model", default=str(ROOT / "conf" / "model" / "tiny.yaml"), help="a scratch model yaml")
     parser.add_argument("--train", default=str(ROOT / "conf" / "train" / "cpu.yaml"), help="a train yaml")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--only", choices=("padded-fp32", "packed-fp32", "packed-default", "packed-compiled"),
+    parser.add_argument("--only", choices=("padded-fp32", "packed-fp32", "packed-precision", "default"),
                         action="append", help="run only these (repeatable)")
-    parser.add_argument("--compile", action="store_true",
-                        help="also run packed-compiled: packed-default with train.torch_compile (its compile time "
-                             "counts in tokens/s; inductor's on-disk cache makes a second run's compile shorter)")
     args = parser.parse_args()
     transformers.logging.set_verbosity_error()
 
@@ -124,7 +151,8 @@ def main() -> None:
                         max_length=max(lengths), seed=args.seed)
     probe = build_scratch_model(tokenizer, **model_kwargs)
     flops_per_real_token = training_flops(probe, lengths) / sum(lengths)
-    default = "bf16" if train_cfg.bf16 else "fp32"
+    precision = "bf16" if train_cfg.bf16 else "fp32"
+    scope = str(train_cfg.get("torch_compile", "none"))
     print(device_line(args.threads))
     print(f"data ({args.data}): {len(conversations)} conversations, tokens min {min(lengths)} median "
           f"{statistics.median(lengths):.0f} max {max(lengths)}; vocab {len(tokenizer)}")
@@ -133,48 +161,57 @@ def main() -> None:
           f"{model_cfg.hidden_size // model_cfg.num_heads}, attention {model_kwargs['attn_implementation']}; "
           f"{flops_per_real_token / 1e6:.2f} MFLOP per real token (training)")
     print(f"train ({Path(args.train).name}): batch {train_cfg.per_device_batch_size}, lr {train_cfg.learning_rate}, "
-          f"default precision {default}; {args.steps} steps a run")
+          f"precision {precision}, torch_compile {scope}; {args.steps} steps a run, steady state from step "
+          f"{args.skip + 1}")
 
     measured = [peaks(args.threads)]
     print("matmul peak before: " + ", ".join(f"{k} {v:.1f} GFLOP/s" for k, v in measured[0].items()))
-    runs = {"padded-fp32": (False, False, False), "packed-fp32": (True, False, False),
-            "packed-default": (True, bool(train_cfg.bf16), False)}
-    if args.compile:
-        runs["packed-compiled"] = (True, bool(train_cfg.bf16), True)
-    results = {}
-    for name, (packing, bf16, compiled) in runs.items():
-        if args.only and name not in args.only:
+    # name: (packing, bf16, torch_compile)
+    runs = {"padded-fp32": (False, False, "none"), "packed-fp32": (True, False, "none"),
+            f"packed-{precision}": (True, bool(train_cfg.bf16), "none")}
+    if scope != "none":
+        runs[f"default ({precision}, {scope} compile)"] = (True, bool(train_cfg.bf16), scope)
+    selected = {"packed-precision": f"packed-{precision}", "default": next(reversed(runs))}
+    wanted = {selected.get(name, name) for name in args.only or runs}
+    rates: dict[str, tuple[float, float]] = {}  # name: (overall, steady) real tokens/s
+    for name, (packing, bf16, compile_scope) in runs.items():
+        if name not in wanted:
             continue
         settings = TrainSettings(
             max_steps=args.steps, per_device_batch_size=train_cfg.per_device_batch_size,
             learning_rate=train_cfg.learning_rate, packing=packing, bf16=bf16, max_length=max(lengths),
             pad_to_multiple_of=train_cfg.pad_to_multiple_of,
             report_to=(), logging_steps=args.steps, save_steps=10 * args.steps, torch_threads=args.threads,
-            seed=args.seed, torch_compile=compiled,
+            seed=args.seed, torch_compile=compile_scope,
         )
+        clock = StepClock()
         with tempfile.TemporaryDirectory() as out:
             model = build_scratch_model(tokenizer, **model_kwargs)
-            result = finetune(model, tokenizer, WORD_LEVEL_FORMAT, conversations, settings, out)
-        results[name] = result
-        label = name.replace("default", default)
-        print(f"{label:>12}: {result.tokens_per_second:8.0f} real tokens/s, real-token fraction "
-              f"{result.real_token_fraction:.3f}, {result.tokens_per_second * flops_per_real_token / 1e9:.1f} "
-              f"GFLOP/s useful ({result.train_seconds:.1f} s for {result.global_step} steps, final loss "
-              f"{result.final_loss:.3f})")
+            result = finetune(model, tokenizer, WORD_LEVEL_FORMAT, conversations, settings, out, callbacks=[clock])
+        steady = clock.steady(args.skip)
+        rates[name] = (result.tokens_per_second, steady)
+        # Steady time for all the steps, against the time they took: what compiling (or warming up) cost.
+        tokens = sum(n for _, n in clock.steps)
+        warmup = sum(t for t, _ in clock.steps) - tokens / steady
+        print(f"{name}: {result.tokens_per_second:.0f} real tokens/s over all steps, {steady:.0f} in steady "
+              f"state ({steady * flops_per_real_token / 1e9:.1f} GFLOP/s useful); real-token fraction "
+              f"{result.real_token_fraction:.3f}; {result.train_seconds:.1f} s for {result.global_step} steps, "
+              f"{warmup:.1f} s of them over the steady rate; final loss {result.final_loss:.3f}")
     measured.append(peaks(args.threads))
     peak = {k: max(m[k] for m in measured) for k in measured[0]}
     print("matmul peak after: " + ", ".join(f"{k} {v:.1f} GFLOP/s" for k, v in measured[1].items())
           + "; using the best: " + ", ".join(f"{k} {v:.1f}" for k, v in peak.items()))
-    if "padded-fp32" in results:
-        base = results["padded-fp32"].tokens_per_second
-        for name in ("packed-fp32", "packed-default", "packed-compiled"):
-            if name in results:
-                print(f"{name.replace('default', default)} / padded-fp32 tokens/s: "
-                      f"{results[name].tokens_per_second / base:.2f}x")
-    for name, result in results.items():
-        gflops = result.tokens_per_second * flops_per_real_token / 1e9
-        print(f"{name.replace('default', default)}: {100 * gflops / peak['fp32']:.0f}% of the fp32 peak, "
-              f"{100 * gflops / peak['bf16']:.0f}% of the bf16 peak")
+    if "padded-fp32" in rates:
+        base_all, base_steady = rates["padded-fp32"]
+        for name, (overall, steady) in rates.items():
+            if name != "padded-fp32":
+                print(f"{name} / padded-fp32 tokens/s: {overall / base_all:.2f}x over all steps, "
+                      f"{steady / base_steady:.2f}x in steady state")
+    for name, (overall, steady) in rates.items():
+        shares = [f"{100 * rate * flops_per_real_token / 1e9 / peak[kind]:.0f}%" for rate in (steady, overall)
+                  for kind in ("fp32", "bf16")]
+        print(f"{name}: steady state {shares[0]} of the fp32 peak ({shares[1]} of bf16); over all steps "
+              f"{shares[2]} ({shares[3]})")
 
 
 if __name__ == "__main__":
