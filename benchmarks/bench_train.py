@@ -14,10 +14,10 @@ conversations through `pipeline.finetune.finetune`, with the default job's batch
   ``regional``). Only when that scope is not ``none``.
 
 Each run prints two rates: over all its steps (compiling included), and in steady state: the median rate of
-the steps after the first ``--skip`` (compiling, and the kernels oneDNN builds for each new batch width,
-mostly done). The time the steps took over the steady rate (compiling, mostly) is printed too. Inductor keeps
-compiled kernels on disk (``TORCHINDUCTOR_CACHE_DIR``): a second run compiles from that cache, in a fraction
-of the time.
+the optimizer steps themselves (forward, backward and update: no batch loading or logging) after the first
+``--skip`` (compiling, and the kernels oneDNN builds for each new batch width, mostly done). The time the steps
+took over the steady rate (compiling, mostly) is printed too. Inductor keeps compiled kernels on disk
+(``TORCHINDUCTOR_CACHE_DIR``): a second run compiles from that cache, in a fraction of the time.
 
 ``--data cpu`` (the default) is what the default job trains on: BWD marking-deadend conversations of 2..4-cell
 worlds (about 300-480 tokens). ``--data paper``: FWD conversations of 300-1,500 tokens, where padding costs more.
@@ -138,6 +138,8 @@ def main() -> None:
     parser.add_argument("--only", choices=("padded-fp32", "packed-fp32", "packed-precision", "default"),
                         action="append", help="run only these (repeatable)")
     args = parser.parse_args()
+    if not 0 <= args.skip < args.steps:
+        parser.error(f"--skip {args.skip} must be at least 0 and below --steps {args.steps}")
     transformers.logging.set_verbosity_error()
 
     model_cfg, train_cfg = OmegaConf.load(args.model), OmegaConf.load(args.train)

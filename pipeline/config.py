@@ -8,6 +8,7 @@ import json
 import os
 import shutil
 import sys
+import sysconfig
 from pathlib import Path
 from dataclasses import dataclass, field
 from enum import Enum
@@ -227,12 +228,16 @@ def validate(cfg: DictConfig) -> str:
     if cfg.model.attn_implementation not in ATTENTION_IMPLEMENTATIONS:
         raise ConfigError(f"model.attn_implementation={cfg.model.attn_implementation!r}: allowed: "
                           f"{', '.join(ATTENTION_IMPLEMENTATIONS)}")
-    if CompileMode(cfg.train.torch_compile) is not CompileMode.none and not _cuda_visible() and not cxx_compiler():
-        raise ConfigError(
-            f"train.torch_compile={CompileMode(cfg.train.torch_compile).value}: torch.compile on a CPU needs a C++ "
-            f"compiler, and {_cxx_name()!r} is not on PATH; install one (Debian: apt install g++), point $CXX at "
-            "one, or set train.torch_compile=none"
-        )
+    if CompileMode(cfg.train.torch_compile) is not CompileMode.none:
+        missing = [what for what, ok in ((f"a C++ compiler ({_cxx_name()!r} is not on PATH)", cxx_compiler()),
+                                         (f"the Python headers ({PYTHON_H} is missing)", PYTHON_H.is_file()))
+                   if not ok]
+        if missing and not _cuda_visible():
+            raise ConfigError(
+                f"train.torch_compile={CompileMode(cfg.train.torch_compile).value}: torch.compile on a CPU builds "
+                f"its kernels as Python extensions and needs {' and '.join(missing)}; install them (Debian: apt "
+                "install g++ python3-dev), point $CXX at a compiler, or set train.torch_compile=none"
+            )
     if ModelKind(cfg.model.kind) is ModelKind.hf and not cfg.model.path:
         raise ConfigError("model.kind=hf needs model.path: a local directory with a causal LM and its tokenizer")
     if data.test_file and not Path(data.test_file).expanduser().is_file():
@@ -243,6 +248,9 @@ def validate(cfg: DictConfig) -> str:
             raise ConfigError(f"model.path={cfg.model.path!r}: expected a local directory with config.json and "
                               "*.safetensors weights (models load from safetensors only)")
     return variant
+
+
+PYTHON_H = Path(sysconfig.get_path("include")) / "Python.h"
 
 
 def _cxx_name() -> str:

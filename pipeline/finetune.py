@@ -58,7 +58,7 @@ class TrainSettings:
     ``torch_compile`` is what torch.compile (inductor) compiles: ``"none"``; ``"regional"``, each repeated
     block (decoder layer) in place, one graph shared by the layers; or ``"full"``, the whole model, through
     Trainer. On the 2-core CPU default both compiled scopes make steps about 1.25x faster; ``regional`` compiles
-    in about 50 s with an empty inductor cache and 5-10 s from a warm one, ``full`` in about 180 s and 60 s.
+    in about 55 s with an empty inductor cache and 5-10 s from a warm one, ``full`` in about 180 s and 60 s.
     On a CPU compiling needs a C++ compiler.
     """
 
@@ -303,7 +303,7 @@ def _training_arguments(settings: TrainSettings, checkpoints: Path) -> TrainingA
         bf16=settings.bf16,
         # bf16 without a GPU is CPU autocast (AMX/AVX512-BF16 matmuls); transformers asks for use_cpu then.
         use_cpu=settings.bf16 and not torch.cuda.is_available(),
-        torch_compile=settings.torch_compile == "full",  # regional: _compile_repeated_blocks, in place
+        torch_compile=settings.torch_compile == "full",  # regional: _compiled_blocks, in place
         report_to=list(settings.report_to) or "none",
         dataloader_num_workers=settings.dataloader_num_workers,
         include_num_input_tokens_seen="non_padding",
@@ -314,13 +314,14 @@ def _training_arguments(settings: TrainSettings, checkpoints: Path) -> TrainingA
 
 @contextmanager
 def _dynamo_environment():
-    """The environment in which a Trainer is built.
+    """The environment in which a Trainer is built: no ``ACCELERATE_DYNAMO_*`` variables.
 
-    transformers hands its compile settings to accelerate through ``ACCELERATE_DYNAMO_*`` variables that it
-    sets in the process (TrainingArguments sets the backend; accelerate's TorchDynamoPlugin reads them when the
-    Trainer builds its Accelerator). Inside this block only ``full`` leaves them set; outside it they are as
-    they were, so a compiled job does not compile the next job that runs in the same process (Hydra's basic
-    launcher), and a variable an earlier job or a launcher left does not compile this one.
+    accelerate's TorchDynamoPlugin, which Trainer builds, takes from these variables whatever Trainer does not
+    pass: the backend when ``torch_compile`` is off, and the mode, dynamic shapes and regional compilation
+    always. ``accelerate launch`` sets them from its config, and so did TrainingArguments with accelerate
+    before 1.2. Left in place, they would compile a job whose ``train.torch_compile`` is ``none`` (or change
+    how a ``full`` job compiles): ``train.torch_compile`` alone decides, so a ``dynamo_config`` in an
+    accelerate config is not used. Outside this block the variables are as they were.
     """
     saved = {key: value for key, value in os.environ.items() if key.startswith(DYNAMO_ENV_PREFIX)}
     for key in saved:
@@ -336,23 +337,28 @@ def _dynamo_environment():
 @contextmanager
 def _compiled_blocks(model: torch.nn.Module, torch_compile: str):
     """With ``regional``, compile every block of the model's repeated blocks (a decoder's layers: the
-    ModuleLists whose members share a class) in place for the duration of the block, then restore them to eager.
+    ModuleLists whose members share a class) in place while the block runs, then put them back to eager.
 
     In place, so parameter names, checkpoints and the saved model are those of the plain model. Blocks of one
     class share their compiled code, so a 4-layer model compiles one layer (twice: the first batch width
     static, then one graph for every width). accelerate's regional compilation also compiles the small
-    modules around the blocks, each apart; through Trainer that ran slower than eager here.
+    modules around the blocks, each apart; through Trainer that ran slower than eager here. Dynamo's caches
+    are reset afterwards, so the next job in the same process starts under no guards or recompile counts of
+    this one (inductor's on-disk cache keeps the compiled kernels).
     """
+    if torch_compile != "regional":
+        yield
+        return
     blocks = [block for module in model.modules() if isinstance(module, torch.nn.ModuleList) and len(module) > 1
               and len({type(block) for block in module}) == 1 for block in module]
-    if torch_compile == "regional":
-        for block in blocks:
-            block.compile()
+    for block in blocks:
+        block.compile()
     try:
         yield
     finally:
         for block in blocks:
             block._compiled_call_impl = None  # what nn.Module.compile set: calls go to the eager forward again
+        torch._dynamo.reset()
 
 
 def checkpoint_steps(output_dir: str | Path) -> list[int]:

@@ -86,8 +86,12 @@ def test_compiling_on_a_cpu_without_a_cxx_compiler_is_refused_naming_the_way_out
     with pytest.raises(ConfigError, match=r"train.torch_compile=regional.*'no-such-c\+\+-compiler'.*"
                                           r"train.torch_compile=none"):
         validate(_compose(["train.torch_compile=regional"]))
+    monkeypatch.setattr("pipeline.config.PYTHON_H", Path("/no/such/include/Python.h"))
+    with pytest.raises(ConfigError, match=r"compiler.*and the Python headers \(/no/such/include/Python.h"):
+        validate(_compose(["train.torch_compile=full"]))
     assert validate(_compose(["train.torch_compile=none"])) == "marking-deadend"
-    monkeypatch.setenv("CXX", "sh")  # any program on PATH
+    monkeypatch.setenv("CXX", "sh")  # any program on PATH, and headers that exist
+    monkeypatch.setattr("pipeline.config.PYTHON_H", Path(__file__))
     assert validate(_compose(["train.torch_compile=full"])) == "marking-deadend"
 
 
