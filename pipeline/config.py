@@ -228,13 +228,14 @@ def validate(cfg: DictConfig) -> str:
     if cfg.model.attn_implementation not in ATTENTION_IMPLEMENTATIONS:
         raise ConfigError(f"model.attn_implementation={cfg.model.attn_implementation!r}: allowed: "
                           f"{', '.join(ATTENTION_IMPLEMENTATIONS)}")
-    if CompileMode(cfg.train.torch_compile) is not CompileMode.none:
+    compile_mode = CompileMode(cfg.train.torch_compile)
+    if compile_mode is not CompileMode.none:
         missing = [what for what, ok in ((f"a C++ compiler ({_cxx_name()!r} is not on PATH)", cxx_compiler()),
                                          (f"the Python headers ({PYTHON_H} is missing)", PYTHON_H.is_file()))
                    if not ok]
         if missing and not _cuda_visible():
             raise ConfigError(
-                f"train.torch_compile={CompileMode(cfg.train.torch_compile).value}: torch.compile on a CPU builds "
+                f"train.torch_compile={compile_mode.value}: torch.compile on a CPU builds "
                 f"its kernels as Python extensions and needs {' and '.join(missing)}; install them (Debian: apt "
                 "install g++ python3-dev), point $CXX at a compiler, or set train.torch_compile=none"
             )

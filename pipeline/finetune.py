@@ -33,15 +33,15 @@ from transformers.trainer_utils import PREFIX_CHECKPOINT_DIR, get_last_checkpoin
 
 from pipeline.data_build import read_conversations
 from pipeline.chat import IGNORE_INDEX, WORD_LEVEL_FORMAT, ChatFormat, encode_conversation
+from pipeline.config import CompileMode
 from pipeline.modeling import build_scratch_model, load_model, load_tokenizer, save_chat_format
 
 log = logging.getLogger(__name__)
 
 REPORT_TARGETS = ("mlflow",)
 SCHEDULERS = ("cosine", "linear", "constant", "constant_with_warmup", "cosine_with_restarts", "polynomial")
-# torch.compile scopes: none (eager), regional (each repeated block, e.g. a decoder layer, compiled once and
-# reused; the rest stays eager), full (the whole model). See TrainSettings.
-COMPILE_MODES = ("none", "regional", "full")
+# torch.compile scopes (the config's CompileMode): none, regional, full. See TrainSettings.
+COMPILE_MODES = tuple(mode.value for mode in CompileMode)
 DYNAMO_ENV_PREFIX = "ACCELERATE_DYNAMO_"
 CHECKPOINTS_DIR, MODEL_DIR, RESULT_FILE = "checkpoints", "model", "train_result.json"
 
@@ -59,7 +59,7 @@ class TrainSettings:
     block (decoder layer) in place, one graph shared by the layers; or ``"full"``, the whole model, through
     Trainer. On the 2-core CPU default both compiled scopes make steps about 1.25x faster; ``regional`` compiles
     in about 55 s with an empty inductor cache and 5-10 s from a warm one, ``full`` in about 180 s and 60 s.
-    On a CPU compiling needs a C++ compiler.
+    On a CPU compiling needs a C++ compiler and the Python headers.
     """
 
     max_steps: int | None = None
