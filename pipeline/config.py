@@ -17,13 +17,14 @@ from typing import Any, Optional
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, OmegaConf
 
-from pipeline.texts import MAP_VARIANTS
+from pipeline.texts import MAP_VARIANTS, PAPER_MAP_VARIANTS, PROMPTS
 from pipeline.tracking import default_tracking_uri
 
 # transformers' attention kernels (model.attn_implementation). On the 2-core AMX CPU, SDPA and "eager" (two
 # batched matmuls and a softmax) train heads of 64 in bf16 at about the same speed; eager is faster for one
 # head of 128. "flash_attention_2" needs the flash-attn package and a GPU.
 ATTENTION_IMPLEMENTATIONS = ("sdpa", "eager", "flash_attention_2")
+LOG_MODEL_CHOICES = ("transformers", "reference")
 
 
 class Direction(str, Enum):
@@ -97,6 +98,12 @@ class ModelConfig:
     attn_implementation: str = "sdpa"   # sdpa | eager | flash_attention_2
     trust_remote_code: bool = False
     chat_format: ChatFormatConfig = field(default_factory=ChatFormatConfig)
+    # What the model is prompted with (texts.PROMPTS): "paper" (instruction, "OK", task) or "task" (the task
+    # turn alone: for models trained from scratch, which cannot use the fixed English instruction).
+    prompt: str = "paper"
+    # How the finetuned model is logged as an MLflow model: "transformers" (the flavour, weights copied) or
+    # "reference" (a logged model pointing at the finetune run's model/ artifacts: for large models).
+    log_model: str = "transformers"
 
 
 @dataclass
@@ -156,6 +163,7 @@ class RunConfig:
     all_moves: bool = True
     marking: bool = True
     backtrack: bool = True
+    named: bool = False     # not in the paper: `From (x, y):` before each expanded state's neighbours
     seed: int = 0
     # torch threads for this job (null: torch's default). Two 1-thread jobs beat one 2-thread job on small models.
     threads: Optional[int] = None
@@ -187,16 +195,21 @@ class UndefinedCell(ConfigError):
 def variant_name(cfg: DictConfig | RunConfig) -> str:
     """The variant the switches describe (a SPEC 3 map variant or a baseline); raises ConfigError if none."""
     baseline = Baseline(cfg.baseline).value
+    named = bool(cfg.get("named", False))
     if baseline != Baseline.cogmap.value:
+        if named:
+            raise ConfigError(f"named=on names the expanded states of a cognitive map; baseline={baseline} has "
+                              "none. Allowed: named=off, or a map variant (baseline=cogmap)")
         return baseline
-    switches = (bool(cfg.all_moves), bool(cfg.marking), bool(cfg.backtrack))
+    switches = (bool(cfg.all_moves), bool(cfg.marking), bool(cfg.backtrack), named)
     for name, value in MAP_VARIANTS.items():
         if tuple(value) == switches:
             return name
     raise ConfigError(
         f"marking=on needs all_moves=on (got all_moves={cfg.all_moves}, marking={cfg.marking}): "
         f"'cut' labels exist only where all four neighbours are listed. Allowed switch settings: "
-        + ", ".join(f"{n} (all_moves={a}, marking={m}, backtrack={b})" for n, (a, m, b) in MAP_VARIANTS.items())
+        + ", ".join(f"{n} (all_moves={a}, marking={m}, backtrack={b})"
+                    for n, (a, m, b, _) in PAPER_MAP_VARIANTS.items())
     )
 
 
@@ -225,6 +238,10 @@ def validate(cfg: DictConfig) -> str:
         raise ConfigError(f"train.max_steps={cfg.train.max_steps}: must be at least 1")
     if cfg.eval.curve and not cfg.train.log_checkpoints:
         raise ConfigError("eval.curve=true needs train.log_checkpoints=true (the curve evaluates logged checkpoints)")
+    if cfg.model.log_model not in LOG_MODEL_CHOICES:
+        raise ConfigError(f"model.log_model={cfg.model.log_model!r}: allowed: {', '.join(LOG_MODEL_CHOICES)}")
+    if cfg.model.prompt not in PROMPTS:
+        raise ConfigError(f"model.prompt={cfg.model.prompt!r}: allowed: {', '.join(PROMPTS)}")
     if cfg.model.attn_implementation not in ATTENTION_IMPLEMENTATIONS:
         raise ConfigError(f"model.attn_implementation={cfg.model.attn_implementation!r}: allowed: "
                           f"{', '.join(ATTENTION_IMPLEMENTATIONS)}")
@@ -241,14 +258,43 @@ def validate(cfg: DictConfig) -> str:
             )
     if ModelKind(cfg.model.kind) is ModelKind.hf and not cfg.model.path:
         raise ConfigError("model.kind=hf needs model.path: a local directory with a causal LM and its tokenizer")
-    if data.test_file and not Path(data.test_file).expanduser().is_file():
-        raise ConfigError(f"data.test_file={data.test_file!r}: no such file; expected a JSONL of worlds in the paper's schema")
+    if data.test_file:
+        _check_test_file(cfg)
     if ModelKind(cfg.model.kind) is ModelKind.hf:
         path = Path(cfg.model.path).expanduser()
         if not path.is_dir() or not (path / "config.json").is_file() or not any(path.glob("*.safetensors")):
             raise ConfigError(f"model.path={cfg.model.path!r}: expected a local directory with config.json and "
                               "*.safetensors weights (models load from safetensors only)")
     return variant
+
+
+def _check_test_file(cfg: DictConfig) -> None:
+    """The test file exists, holds data.n_test worlds, and (for a model trained from scratch, whose
+    vocabulary holds the cells of data.frame) no world reaches outside the frame."""
+    from pipeline.world import WorldError, load_worlds
+
+    data = cfg.data
+    path = Path(data.test_file).expanduser()
+    if not path.is_file():
+        raise ConfigError(f"data.test_file={data.test_file!r}: no such file; expected a JSONL of worlds in the paper's schema")
+    try:
+        worlds = load_worlds(path)
+    except WorldError as error:
+        raise ConfigError(f"data.test_file={data.test_file!r}: {error}") from None
+    if len(worlds) < data.n_test:
+        raise ConfigError(f"data.n_test={data.n_test} but data.test_file={data.test_file!r} holds {len(worlds)} "
+                          f"worlds; allowed: 1..{len(worlds)}")
+    if ModelKind(cfg.model.kind) is not ModelKind.scratch:
+        return
+    for index, world in enumerate(worlds[: data.n_test]):
+        corner = (world.x0 + world.size_x - 1, world.y0 + world.size_y - 1)
+        if min(world.x0, world.y0) < 0 or max(corner) >= data.frame:
+            outside = corner if max(corner) >= data.frame else (world.x0, world.y0)
+            needed = max(max(corner) + 1, data.frame)
+            raise ConfigError(
+                f"data.test_file={data.test_file!r}: test world {index} has the cell {outside} outside the "
+                f"coordinates a model trained from scratch knows (data.frame={data.frame}: cells 0..{data.frame - 1} "
+                f"on each axis); allowed: data.frame >= {needed} (and coordinates >= 0)")
 
 
 PYTHON_H = Path(sysconfig.get_path("include")) / "Python.h"

@@ -35,11 +35,12 @@ class TextSpec:
     variant: str
     mode: str
     seed: int = 0
+    prompt: str = "paper"   # texts.PROMPTS: the paper's three prompt turns, or the task turn alone
 
     @classmethod
-    def of(cls, direction: str, variant: str, mode: str, seed: int = 0) -> "TextSpec":
+    def of(cls, direction: str, variant: str, mode: str, seed: int = 0, prompt: str = "paper") -> "TextSpec":
         # NONE and DFS texts do not depend on the direction: both directions share one dataset (and model).
-        return cls(None if variant in ("none", "dfs") else direction, variant, mode, seed)
+        return cls(None if variant in ("none", "dfs") else direction, variant, mode, seed, prompt)
 
 
 def generator_config(size_x: Sequence[int], size_y: Sequence[int], frame: int, p_pit: Sequence[float]) -> GeneratorConfig:
@@ -83,7 +84,8 @@ def _conversations(worlds: list[World], spec: TextSpec, desc: str) -> Iterable[d
     direction = spec.direction or "fwd"
     for index, world in enumerate(tqdm(worlds, desc=desc, unit="world", leave=False)):
         # Each world's DFS walk gets its own seed, so the walks do not depend on the split's order.
-        turns = conversation(world, direction, spec.variant, spec.mode, seed=spec.seed * 1_000_003 + index)
+        turns = conversation(world, direction, spec.variant, spec.mode, seed=spec.seed * 1_000_003 + index,
+                             prompt=spec.prompt)
         yield {"id": index, "conversations": turns}
 
 
@@ -106,7 +108,7 @@ def write_dataset(out_dir: str | Path, train: list[World], test: list[World], sp
 
     _write_jsonl(out / TRAIN_CONVERSATIONS, measured(_conversations(train, spec, "train texts")))
     train_tokens = list(token_lengths)
-    # Test conversations are the golden references (the model is prompted with their first three turns).
+    # Test conversations are the golden references (the model is prompted with their turns before the first answer).
     _write_jsonl(out / TEST_CONVERSATIONS, _conversations(test, spec, "test texts"))
     test_stats = [asdict(world_stats(world, train_max)) for world in test]
     _write_jsonl(out / TEST_STATS, test_stats)

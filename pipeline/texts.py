@@ -11,22 +11,29 @@ from pipeline.world import MOVES, Cell, World, move_between, step
 Direction = Literal["fwd", "bwd"]
 Mode = Literal["optimal", "reachable"]
 Baseline = Literal["none", "cot", "dfs"]
+# What a model is prompted with: the paper's three turns (instruction, "OK", task), or the task turn alone.
+# The instruction is the same English text in every conversation: a model trained from scratch learns
+# nothing from it, yet pays for its ~155 tokens in every step; pretrained models keep the paper's prompt.
+Prompt = Literal["paper", "task"]
 
 DIRECTIONS: tuple[str, ...] = get_args(Direction)
 MODES: tuple[str, ...] = get_args(Mode)
 BASELINES: tuple[str, ...] = get_args(Baseline)
+PROMPTS: tuple[str, ...] = get_args(Prompt)
 
 
 class MapSwitches(NamedTuple):
-    """The three switches a cognitive-map variant is made of (SPEC 3 table)."""
+    """The switches a cognitive-map variant is made of: the three of SPEC 3's table, and ``named``
+    (not in the paper), which writes ``From (x, y):`` before the neighbours of each expanded state."""
 
     all_moves: bool
     marking: bool
     backtrack: bool
+    named: bool = False
 
 
-# The variant table, in the paper's row order. `marking` is meaningless without all-moves: off there.
-MAP_VARIANTS: dict[str, MapSwitches] = {
+# The paper's variant table, in its row order. `marking` is meaningless without all-moves: off there.
+PAPER_MAP_VARIANTS: dict[str, MapSwitches] = {
     "marking-deadend": MapSwitches(all_moves=True, marking=True, backtrack=True),
     "no-marking": MapSwitches(all_moves=True, marking=False, backtrack=True),
     "no-backtrack": MapSwitches(all_moves=True, marking=True, backtrack=False),
@@ -34,6 +41,13 @@ MAP_VARIANTS: dict[str, MapSwitches] = {
     "no-all": MapSwitches(all_moves=False, marking=False, backtrack=True),
     "no-all-no-backtrack": MapSwitches(all_moves=False, marking=False, backtrack=False),
 }
+# Beyond the paper: each variant with its expanded states named (`<variant>-named`).
+NAMED_SUFFIX = "-named"
+MAP_VARIANTS: dict[str, MapSwitches] = {
+    **PAPER_MAP_VARIANTS,
+    **{name + NAMED_SUFFIX: switches._replace(named=True) for name, switches in PAPER_MAP_VARIANTS.items()},
+}
+PAPER_VARIANTS: tuple[str, ...] = tuple(PAPER_MAP_VARIANTS) + BASELINES
 VARIANTS: tuple[str, ...] = tuple(MAP_VARIANTS) + BASELINES
 
 INSTRUCTION = (
@@ -102,22 +116,23 @@ def first_human_text(world: World) -> str:
     return task_text(world) + observation(world, world.start)
 
 
-def prompt_turns(world: World) -> list[dict[str, str]]:
-    """The first three turns: what a model is prompted with."""
-    return [
-        {"from": "human", "value": INSTRUCTION},
-        {"from": "gpt", "value": ACKNOWLEDGEMENT},
-        {"from": "human", "value": first_human_text(world)},
-    ]
+def prompt_turns(world: World, prompt: str = "paper") -> list[dict[str, str]]:
+    """What a model is prompted with: the paper's three turns, or (``prompt="task"``) the task turn alone."""
+    check_choice("prompt", prompt, PROMPTS)
+    task = {"from": "human", "value": first_human_text(world)}
+    if prompt == "task":
+        return [task]
+    return [{"from": "human", "value": INSTRUCTION}, {"from": "gpt", "value": ACKNOWLEDGEMENT}, task]
 
 
 def cognitive_map(
-    world: World, direction: str, *, all_moves: bool, marking: bool, backtrack: bool
+    world: World, direction: str, *, all_moves: bool, marking: bool, backtrack: bool, named: bool = False
 ) -> list[str]:
     """The Thought section of a map variant, `Thought:` first: BFS steps, then Backtrack if switched on.
 
     BFS runs level by level from the start (fwd) or the goal (bwd) until the other end is visited;
-    a neighbour is new if free and not visited before this step (SPEC 3).
+    a neighbour is new if free and not visited before this step (SPEC 3). With ``named`` (not in the
+    paper) each expanded state's neighbours follow a ``From (x, y):`` line naming it.
     """
     check_choice("direction", direction, DIRECTIONS)
     root, target = (world.start, world.goal) if direction == "fwd" else (world.goal, world.start)
@@ -136,6 +151,8 @@ def cognitive_map(
         lines.append(f"Step {level}:")
         following = []
         for state in frontier:
+            if named:
+                lines.append(f"From {names[state]}:")
             for offset, label in moves:
                 j = state + offset
                 if not blocked[j] and not visited[j]:
@@ -258,12 +275,12 @@ def _answer(world: World, direction: str, variant: str, mode: str, moves: list[s
 
 
 def conversation(
-    world: World, direction: str, variant: str, mode: str, seed: int = 0
+    world: World, direction: str, variant: str, mode: str, seed: int = 0, prompt: str = "paper"
 ) -> list[dict[str, str]]:
     """The whole training conversation (SPEC 2): prompt, first answer and, when reachable, the walk."""
     _check(direction, variant, mode)
     moves = _moves(world, variant, seed)
-    turns = prompt_turns(world)
+    turns = prompt_turns(world, prompt)
     turns.append({"from": "gpt", "value": _answer(world, direction, variant, mode, moves)})
     if mode == "reachable":
         cell = step(world.start, moves[0])

@@ -8,7 +8,7 @@ from hydra.core.global_hydra import GlobalHydra
 from omegaconf import OmegaConf
 
 from pipeline.config import ConfigError, UndefinedCell, register_configs, validate, variant_name
-from pipeline.texts import MAP_VARIANTS
+from pipeline.texts import PAPER_MAP_VARIANTS, PAPER_VARIANTS
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF, SWEEPS = ROOT / "conf", ROOT / "sweeps"
@@ -33,7 +33,7 @@ def test_default_job_is_bwd_marking_deadend_optimal():
     assert validate(cfg) == "marking-deadend"
 
 
-@pytest.mark.parametrize("group", ["direction", "mode", "baseline", "marking", "backtrack", "all_moves",
+@pytest.mark.parametrize("group", ["direction", "mode", "baseline", "marking", "backtrack", "all_moves", "named",
                                    "variant", "model", "data", "train", "eval", "tracking"])
 def test_every_group_option_composes(group):
     for option in _options(group):
@@ -41,9 +41,29 @@ def test_every_group_option_composes(group):
         OmegaConf.to_container(cfg, resolve=True, throw_on_missing=False)
 
 
-@pytest.mark.parametrize("variant", list(MAP_VARIANTS) + ["none", "cot"])
+@pytest.mark.parametrize("variant", list(PAPER_MAP_VARIANTS) + ["none", "cot"])
 def test_variant_presets_name_their_row(variant):
     assert validate(_compose([f"variant={variant}"])) == variant
+
+
+@pytest.mark.parametrize("variant", ["marking-deadend", "no-marking", "no-all-no-backtrack"])
+def test_named_switch_names_the_expanded_states_of_any_map(variant):
+    assert validate(_compose([f"variant={variant}", "named=on"])) == variant + "-named"
+    assert validate(_compose([f"variant={variant}", "named=off"])) == variant
+
+
+@pytest.mark.parametrize("baseline", ["none", "cot", "dfs"])
+def test_named_without_a_map_is_refused(baseline):
+    with pytest.raises(ConfigError, match=f"named=on .* baseline={baseline} has none. Allowed: named=off"):
+        validate(_compose([f"variant={baseline}", "named=on", "mode=reachable"]))
+
+
+def test_models_trained_from_scratch_drop_the_instruction_and_pretrained_ones_keep_it():
+    assert _compose().model.prompt == "task" and _compose(["model=toy"]).model.prompt == "task"
+    assert _compose(["model=llama3_8b"]).model.prompt == "paper"
+    assert _compose(["model=hf", "model.path=x"]).model.prompt == "paper"
+    assert _compose().model.log_model == "transformers"
+    assert _compose(["model=llama3_8b"]).model.log_model == "reference"
 
 
 def test_aliases_and_command_line_switches_win_over_presets():
@@ -73,6 +93,8 @@ def test_marking_without_all_moves_is_refused_naming_the_values():
     ("train.max_steps=0", "train.max_steps"),
     ("model=hf", "model.path"),
     ("model.attn_implementation=flash", "model.attn_implementation='flash'.*sdpa, eager"),
+    ("model.prompt=short", "model.prompt='short': allowed: paper, task"),
+    ("model.log_model=copy", "model.log_model='copy': allowed: transformers, reference"),
 ])
 def test_bad_values_fail_before_any_work(override, message):
     cfg = _compose([override, "model.path=null"] if override == "model=hf" else [override])
@@ -104,13 +126,33 @@ def test_unknown_names_fail_at_compose_time(override):
     assert override.split("=")[0].split(".")[-1] in text or "Could not find" in text
 
 
-@pytest.mark.parametrize("sweep", sorted(p.stem for p in SWEEPS.glob("*.yaml")))
+@pytest.mark.parametrize("sweep", ["paper", "smoke"])
 def test_sweep_files_compose_and_define_the_whole_grid(sweep):
     cfg = _compose(name=sweep, sweeps=True, hydra_node=True)
     params = cfg.hydra.sweeper.params
     assert params.direction == "fwd,bwd" and params.mode == "optimal,reachable"
-    assert set(params.variant.split(",")) == set(MAP_VARIANTS) | {"none", "cot", "dfs"}
+    assert set(params.variant.split(",")) == set(PAPER_VARIANTS)
     assert cfg.skip_undefined is True
+
+
+def test_every_sweep_file_is_tested():
+    assert sorted(p.stem for p in SWEEPS.glob("*.yaml")) == ["cpu_study", "paper", "smoke"]
+
+
+def test_cpu_study_is_the_optimal_half_of_table_1_with_two_seeds_where_asked():
+    cfg = _compose(name="cpu_study", sweeps=True, hydra_node=True)
+    assert cfg.hydra.launcher._target_.endswith("JoblibLauncher") and cfg.hydra.launcher.n_jobs == 2
+    cells = cfg.hydra.sweeper.params["+study_cell"].split(",")
+    jobs = []
+    for cell in cells:
+        job = _compose([f"+study_cell={cell}"], name="cpu_study", sweeps=True)
+        assert job.mode.value == "optimal" and job.threads == 1 and job.eval.curve and job.train.log_checkpoints
+        assert OmegaConf.masked_copy(job, ["data", "model"]) == OmegaConf.masked_copy(_compose(), ["data", "model"])
+        jobs.append((validate(job), job.direction.value if validate(job) != "none" else "-", job.seed))
+    assert sorted(jobs) == sorted([
+        ("none", "-", 0), ("none", "-", 1), ("cot", "fwd", 0), ("cot", "bwd", 0),
+        ("marking-deadend", "fwd", 0), ("marking-deadend", "bwd", 0), ("marking-deadend", "bwd", 1),
+        ("no-marking", "fwd", 0), ("no-marking", "bwd", 0), ("marking-deadend-named", "bwd", 0)])
 
 
 def test_paper_scale_presets_compose():
@@ -137,3 +179,23 @@ def test_train_config_schema_matches_train_settings():
 
     schema = {f.name for f in fields(TrainConfig)} - set(_STEP_KEYS)
     assert schema == {f.name for f in fields(TrainSettings)} - {"seed"}  # the job's seed seeds training
+
+
+def test_test_worlds_outside_a_scratch_models_coordinates_are_refused_naming_a_cell(paper_test_file):
+    # The paper's worlds reach (19, y) in a 20 x 20 frame; a CPU-default model knows cells 0..5 (frame 6).
+    cfg = _compose([f"data.test_file={paper_test_file}", "data.n_test=50"])
+    with pytest.raises(ConfigError, match=r"test world \d+ has the cell \(\d+, \d+\) outside .*data.frame=6.*"
+                                          r"allowed: data.frame >= \d+"):
+        validate(cfg)
+    assert validate(_compose([f"data.test_file={paper_test_file}", "data.n_test=50", "data.frame=20"]))
+
+
+def test_a_test_file_with_too_few_or_malformed_worlds_is_refused(tmp_path, paper_test_file):
+    short = tmp_path / "short.jsonl"
+    short.write_text("".join(paper_test_file.read_text().splitlines(keepends=True)[:3]))
+    with pytest.raises(ConfigError, match=r"data.n_test=10 but data.test_file=.* holds 3 worlds; allowed: 1..3"):
+        validate(_compose([f"data.test_file={short}", "data.n_test=10", "data.frame=20"]))
+    broken = tmp_path / "broken.jsonl"
+    broken.write_text("{not json\n")
+    with pytest.raises(ConfigError, match=r"data.test_file=.*broken.jsonl.*:1:"):
+        validate(_compose([f"data.test_file={broken}", "data.n_test=1", "data.frame=20"]))

@@ -50,6 +50,18 @@ def test_every_variant_sees_the_same_worlds(tmp_path):
         assert golden[0][-1]["value"].startswith("Thought:" if variant != "none" else "Plan:")
 
 
+def test_the_task_prompt_drops_the_instruction_turns_and_nothing_else(tmp_path):
+    train, test = build_splits(_data())
+    for prompt in ("paper", "task"):
+        write_dataset(tmp_path / prompt, train, test, TextSpec.of("bwd", "marking-deadend", "optimal", prompt=prompt),
+                      (4, 4))
+    paper, task = (read_conversations(tmp_path / p / TRAIN_CONVERSATIONS) for p in ("paper", "task"))
+    assert [turns[2:] for turns in paper] == task
+    assert all(len(turns) == 2 and turns[0]["value"].startswith("Grid is from") for turns in task)
+    assert TextSpec.of("bwd", "marking-deadend", "optimal", prompt="task") != TextSpec.of("bwd", "marking-deadend",
+                                                                                            "optimal")
+
+
 def test_direction_free_baselines_share_one_text_spec():
     assert TextSpec.of("fwd", "none", "optimal") == TextSpec.of("bwd", "none", "optimal")
     assert TextSpec.of("fwd", "dfs", "reachable") == TextSpec.of("bwd", "dfs", "reachable")

@@ -13,6 +13,9 @@ from pipeline.texts import (
     INSTRUCTION,
     MAP_VARIANTS,
     MODES,
+    PAPER_MAP_VARIANTS,
+    PAPER_VARIANTS,
+    PROMPTS,
     VARIANTS,
     answer,
     backtrack_lines,
@@ -34,7 +37,7 @@ def test_constants():
     assert DIRECTIONS == ("fwd", "bwd")
     assert MODES == ("optimal", "reachable")
     assert BASELINES == ("none", "cot", "dfs")
-    assert VARIANTS == (
+    assert PAPER_VARIANTS == (
         "marking-deadend",
         "no-marking",
         "no-backtrack",
@@ -45,8 +48,10 @@ def test_constants():
         "cot",
         "dfs",
     )
-    assert MAP_VARIANTS["marking-deadend"] == (True, True, True)
-    assert MAP_VARIANTS["no-all"] == (False, False, True)
+    assert VARIANTS == (*PAPER_MAP_VARIANTS, *(v + "-named" for v in PAPER_MAP_VARIANTS), *BASELINES)
+    assert MAP_VARIANTS["marking-deadend"] == (True, True, True, False)
+    assert MAP_VARIANTS["no-all"] == (False, False, True, False)
+    assert MAP_VARIANTS["no-all-named"] == (False, False, True, True)
     assert INSTRUCTION.startswith("You are given a rectangular gridworld, where you can move up, down,")
     assert INSTRUCTION.endswith("with either one of 'up', 'down', 'left', or 'right'.")
     assert INSTRUCTION.count("\n\n") == 2
@@ -220,3 +225,39 @@ def test_maps_anywhere_in_the_plane(example_world, offset):
     golden = answer(example_world, "fwd", "marking-deadend", "optimal").split("\n")
     assert len(lines) == len(golden)
     assert lines[2] == f"({dx}, {dy + 1})" and lines[4] == f"({dx}, {dy - 1})"
+
+
+def test_task_prompt_is_the_paper_prompt_without_the_instruction(example_world, golden):
+    assert PROMPTS == ("paper", "task")
+    paper, task = prompt_turns(example_world, "paper"), prompt_turns(example_world, "task")
+    assert task == paper[2:] == [{"from": "human", "value": golden["turn_3"]}]
+    for mode in MODES:
+        assert conversation(example_world, "bwd", "marking-deadend", mode, prompt="task") == \
+            conversation(example_world, "bwd", "marking-deadend", mode)[2:]
+    with pytest.raises(ValueError, match="unknown prompt 'none'; allowed: paper, task"):
+        prompt_turns(example_world, "none")
+
+
+@pytest.mark.parametrize("direction", DIRECTIONS)
+@pytest.mark.parametrize("variant", list(PAPER_MAP_VARIANTS))
+def test_named_map_is_the_paper_map_with_a_from_line_per_expanded_state(variant, direction):
+    world = _world(walls=[(1, 1)], pits=[(0, 2)], size=(3, 3))
+    plain = answer(world, direction, variant, "optimal").split("\n")
+    named = answer(world, direction, variant + "-named", "optimal").split("\n")
+    assert [line for line in named if not line.startswith("From ")] == plain
+    # One From line per expanded state, naming it, right after its step header or the previous state's lines.
+    froms = [line for line in named if line.startswith("From ")]
+    root = world.start if direction == "fwd" else world.goal
+    assert froms[0] == f"From ({root[0]}, {root[1]}):"
+    assert named[named.index("Step 1:") + 1] == froms[0]
+    expanded = [line.split("From ")[1][:-1] for line in froms]
+    assert len(expanded) == len(set(expanded))
+
+
+def test_named_golden_bwd_marking_deadend():
+    # A 2 x 2 world, wall at (1, 0): BFS from the goal (1, 1) reaches (0, 1) then the start (0, 0).
+    world = _world(walls=[(1, 0)], size=(2, 2))
+    assert answer(world, "bwd", "marking-deadend-named", "optimal") == "\n".join([
+        "Thought:", "Step 1:", "From (1, 1):", "(1, 2)", "cut", "(1, 0)", "cut", "(0, 1)", "right", "(2, 1)", "cut",
+        "Step 2:", "From (0, 1):", "(0, 2)", "cut", "(0, 0)", "up", "(-1, 1)", "cut", "(1, 1)", "cut",
+        "Backtrack:", "(0, 0)", "up", "(0, 1)", "right", "(1, 1)", "Plan:", "up", "right"])
