@@ -14,6 +14,7 @@ from typing import Iterable, Protocol, Sequence
 from tqdm import tqdm
 
 from pipeline.env import Outcome
+from pipeline.map_errors import first_wrong_line
 from pipeline.scoring import score_optimal
 from pipeline.texts import prompt_turns
 from pipeline.world import World
@@ -26,7 +27,7 @@ class Decoder(Protocol):
 
     def answer(self, prompts: list[list[dict]]) -> list: ...
 
-    def play(self, worlds: list[World], *, max_steps: int, on_episode=None) -> list: ...
+    def play(self, worlds: list[World], *, max_steps: int, on_episode=None, prompt: str = "paper") -> list: ...
 
 
 def make_decoder(cfg, model_dir: str) -> Decoder:
@@ -59,8 +60,10 @@ def optimal_record(index: int, world: World, stats: dict, text: str, error: str 
     record = _base_record(index, stats)
     if error is not None:
         return {**record, "success": False, "outcome": "error", "n_moves": 0, "moves": [], "parsed": False,
-                "valid": False, "reaches_goal": False, "map_exact": None, "map_first_error": None, "error": error}
+                "valid": False, "reaches_goal": False, "map_exact": None, "map_first_error": None,
+                "first_wrong_line": None, "answers": [text], "error": error}
     score = score_optimal(world, text, direction, variant)
+    wrong = first_wrong_line(world, direction, variant, text)
     moves = list(score.moves)
     return {
         **record,
@@ -73,12 +76,15 @@ def optimal_record(index: int, world: World, stats: dict, text: str, error: str 
         "reaches_goal": score.reaches_goal,
         "map_exact": score.map_exact,
         "map_first_error": score.map_first_error,
+        "first_wrong_line": wrong.to_dict() if wrong is not None else None,
+        "answers": [text],
         "error": None,
     }
 
 
-def reachable_record(index: int, stats: dict, outcome: str | None, moves: Sequence[str], error: str | None) -> dict:
-    """Record one multi-turn episode (SPEC 4 outcomes)."""
+def reachable_record(index: int, stats: dict, outcome: str | None, moves: Sequence[str], error: str | None,
+                     answers: Sequence[str] = ()) -> dict:
+    """Record one multi-turn episode (SPEC 4 outcomes) with the model's answer of every turn."""
     return {
         **_base_record(index, stats),
         "success": outcome == Outcome.SUCCESS.value and error is None,
@@ -86,6 +92,7 @@ def reachable_record(index: int, stats: dict, outcome: str | None, moves: Sequen
         "n_moves": len(moves),
         "moves": list(moves),
         "parsed": None, "valid": None, "reaches_goal": None, "map_exact": None, "map_first_error": None,
+        "first_wrong_line": None, "answers": list(answers),
         "error": error,
     }
 
@@ -133,6 +140,7 @@ def evaluate(
     max_steps: int,
     partial_path: str | Path,
     chunk_size: int = 64,
+    prompt: str = "paper",
 ) -> list[dict]:
     """Run every world not yet in ``partial_path`` and return all records in world order.
 
@@ -149,7 +157,7 @@ def evaluate(
             if not chunk:
                 continue
             if mode == "optimal":
-                generations = decoder.answer([prompt_turns(worlds[i]) for i in chunk])
+                generations = decoder.answer([prompt_turns(worlds[i], prompt) for i in chunk])
                 for i, generation in zip(chunk, generations):
                     partial.add(optimal_record(i, worlds[i], stats[i], generation.text, generation.error, direction, variant))
                     progress.update()
@@ -157,10 +165,10 @@ def evaluate(
                 def finished(episode, chunk=chunk) -> None:
                     i = chunk[episode.world_index]
                     outcome = episode.outcome.value if episode.outcome is not None else None
-                    partial.add(reachable_record(i, stats[i], outcome, episode.moves, episode.error))
+                    partial.add(reachable_record(i, stats[i], outcome, episode.moves, episode.error, episode.answers))
                     progress.update()
 
-                decoder.play([worlds[i] for i in chunk], max_steps=max_steps, on_episode=finished)
+                decoder.play([worlds[i] for i in chunk], max_steps=max_steps, on_episode=finished, prompt=prompt)
     finally:
         progress.close()
         partial.close()

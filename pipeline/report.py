@@ -27,8 +27,14 @@ from typing import Callable, Iterable
 import pandas as pd
 from hydra.experimental.callback import Callback
 
+from pipeline import texts
+from pipeline.data_build import TEST_WORLDS
+from pipeline.map_errors import STEP_BUCKETS, category, step_bucket
+from pipeline.report_figures import gallery_picks
+from pipeline.world import load_worlds
 from pipeline.stats import mcnemar, seeded_rate
 from pipeline.tracking import (
+    CURVE_EPISODES_ARTIFACT,
     CURVE_METRIC,
     EPISODE_FIELDS,
     EPISODES_ARTIFACT,
@@ -45,9 +51,8 @@ log = logging.getLogger(__name__)
 
 MODES = ("optimal", "reachable")
 DIRECTIONS = ("fwd", "bwd")
-MAP_VARIANTS = ("marking-deadend", "no-marking", "no-backtrack", "no-marking-no-backtrack",
-                "no-all", "no-all-no-backtrack")
-VARIANTS = (*MAP_VARIANTS, "none", "cot", "dfs")
+MAP_VARIANTS = tuple(texts.MAP_VARIANTS)
+VARIANTS = texts.VARIANTS
 REFERENCE_VARIANT = "marking-deadend"
 LOSS_METRIC = "loss"
 
@@ -81,6 +86,9 @@ SUCCESS_TABLES = {
                ("no-all-no-backtrack", "no-all")),
     "table8": ("Table 8: success rate without BACKTRACK",
                ("no-marking-no-backtrack", "no-backtrack")),
+    "table_named": ("Beyond the paper: each expanded state named (`From (x, y):` before its neighbours)",
+                    ("marking-deadend", "marking-deadend" + texts.NAMED_SUFFIX,
+                     "no-marking", "no-marking" + texts.NAMED_SUFFIX)),
 }
 
 # Every table is also split by these subsets of the test worlds (name -> episode filter).
@@ -124,6 +132,7 @@ class Job:
     finetune_run_id: str | None
     start_time: int
     train_max: tuple[int, int] | None = None   # (X, Y) from the job's tags; None for runs that predate them
+    data_build_run_id: str | None = None
 
     @property
     def label(self) -> str:
@@ -140,6 +149,10 @@ class StoreData:
     curves: pd.DataFrame            # JOB_COLUMNS + job_run_id, step, value (curve_success_rate)
     losses: pd.DataFrame            # JOB_COLUMNS + finetune_run_id, step, value (training loss)
     notes: list[str] = field(default_factory=list)
+    # JOB_COLUMNS + job_run_id, step, success, interpolated, wrong_category, wrong_step: checkpoint episodes
+    curve_episodes: pd.DataFrame = field(default_factory=pd.DataFrame)
+    # job run id -> (world, episode record) pairs the job's gallery figure draws
+    galleries: dict[str, list[tuple]] = field(default_factory=dict)
 
 
 def open_experiment(tracking_uri: str, experiment: str):
@@ -200,6 +213,7 @@ def finished_jobs(client, experiment_id: str) -> tuple[list[Job], list[str]]:
             paper_row=tags.get("paper_row", ""),
             eval_run_id=tags.get(step_run_tag("eval")),
             finetune_run_id=tags.get(step_run_tag("finetune")),
+            data_build_run_id=tags.get(step_run_tag("data-build")),
             start_time=run.info.start_time or 0,
             train_max=_train_max(tags),
         )
@@ -236,11 +250,24 @@ def _seed_key(seed: str) -> tuple[int, float | str]:
 
 def read_episodes(client, run_id: str, scratch: Path) -> pd.DataFrame:
     """The eval run's ``episodes.jsonl`` as a DataFrame with every column of ``EPISODE_FIELDS``."""
+    return episodes_frame(read_records(client, run_id, scratch))
+
+
+def read_records(client, run_id: str, scratch: Path) -> list[dict]:
+    """The eval run's ``episodes.jsonl`` records as written."""
     target = scratch / run_id
     target.mkdir(parents=True, exist_ok=True)
-    local = client.download_artifacts(run_id, EPISODES_ARTIFACT, str(target))
-    with open(local, encoding="utf-8") as fh:
-        records = [json.loads(line) for line in fh if line.strip()]
+    return _jsonl(client.download_artifacts(run_id, EPISODES_ARTIFACT, str(target)))
+
+
+def _jsonl(path: str | Path) -> list[dict]:
+    with open(path, encoding="utf-8") as fh:
+        return [json.loads(line) for line in fh if line.strip()]
+
+
+def episodes_frame(records: list[dict]) -> pd.DataFrame:
+    """Episode records as a DataFrame: typed columns, the first wrong line as category/step/state columns,
+    without the move lists and raw answers (the report never reads them; `python -m pipeline.inspect` does)."""
     frame = pd.DataFrame.from_records(records)
     for name in EPISODE_FIELDS:
         if name not in frame.columns:
@@ -251,7 +278,27 @@ def read_episodes(client, run_id: str, scratch: Path) -> pd.DataFrame:
     for name in ("size_x", "size_y", "optimal_length", "n_moves", "map_first_error"):
         frame[name] = pd.to_numeric(frame[name], errors="coerce")
     frame["outcome"] = frame["outcome"].astype("string").str.lower()
-    return frame.drop(columns=["moves"])  # the report never reads the move lists
+    sites = [site if isinstance(site, dict) else None for site in frame["first_wrong_line"]]
+    frame["wrong_category"] = [category(site) if site else None for site in sites]
+    frame["wrong_step"] = [step_bucket(site.get("step")) if site else None for site in sites]
+    frame["wrong_state"] = pd.to_numeric(pd.Series([site.get("state") if site else None for site in sites],
+                                                   index=frame.index, dtype=object), errors="coerce")
+    return frame.drop(columns=["moves", "answers", "first_wrong_line"])
+
+
+def read_curve_episodes(client, run_id: str, scratch: Path) -> pd.DataFrame:
+    """The episodes of every evaluated checkpoint (``curve/step-<n>.jsonl``), with a ``step`` column."""
+    entries = client.list_artifacts(run_id, CURVE_EPISODES_ARTIFACT)
+    frames = []
+    for entry in entries:
+        name = Path(entry.path).name
+        if entry.is_dir or not (name.startswith("step-") and name.endswith(".jsonl")):
+            continue
+        target = scratch / run_id / "curve"
+        target.mkdir(parents=True, exist_ok=True)
+        frame = episodes_frame(_jsonl(client.download_artifacts(run_id, entry.path, str(target))))
+        frames.append(frame.assign(step=int(name[len("step-"):-len(".jsonl")])))
+    return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
 
 
 def _history(client, run_id: str, key: str) -> pd.DataFrame:
@@ -265,8 +312,11 @@ def load_store(tracking_uri: str, experiment: str) -> StoreData:
     """Read the experiment's finished jobs, their episodes, checkpoint curves and training losses."""
     client, exp = open_experiment(tracking_uri, experiment)
     jobs, notes = finished_jobs(client, exp.experiment_id)
-    episodes, curves, losses = [], [], []
+    episodes, curves, losses, curve_episodes = [], [], [], []
     cache: dict[str, pd.DataFrame | None] = {}
+    picks: dict[str, list[dict]] = {}
+    galleries: dict[str, list[tuple]] = {}
+    test_worlds: dict[str, list] = {}
     with tempfile.TemporaryDirectory() as scratch:
         for job in jobs:
             cell = {"mode": job.mode, "direction": job.direction, "variant": job.variant,
@@ -276,12 +326,25 @@ def load_store(tracking_uri: str, experiment: str) -> StoreData:
                 continue
             if job.eval_run_id not in cache:  # a reused eval run is read once
                 try:
-                    cache[job.eval_run_id] = read_episodes(client, job.eval_run_id, Path(scratch))
+                    records = read_records(client, job.eval_run_id, Path(scratch))
+                    cache[job.eval_run_id] = episodes_frame(records)
+                    picks[job.eval_run_id] = gallery_picks(records)
                 except Exception as err:  # noqa: BLE001 (a broken job must not stop the report)
                     cache[job.eval_run_id] = None
                     notes.append(f"eval run {job.eval_run_id[:8]} ({job.label}): cannot read "
                                  f"{EPISODES_ARTIFACT} (shown as not run): {err}")
             frame = cache[job.eval_run_id]
+            if frame is not None and picks.get(job.eval_run_id):
+                data_id = job.data_build_run_id
+                try:
+                    if data_id and data_id not in test_worlds:
+                        test_worlds[data_id] = load_worlds(client.download_artifacts(
+                            data_id, TEST_WORLDS, str(Path(scratch) / data_id)))
+                    worlds = test_worlds.get(data_id) or []
+                    galleries[job.run_id] = [(worlds[r["world_index"]], r) for r in picks[job.eval_run_id]
+                                             if r["world_index"] < len(worlds)]
+                except Exception as err:  # noqa: BLE001 (a gallery is not worth failing the report)
+                    notes.append(f"job {job.run_id[:8]} ({job.label}): no gallery, cannot read its test worlds: {err}")
             if frame is not None:
                 box = job.train_max or (None, None)
                 episodes.append(frame.assign(**cell, job_run_id=job.run_id, eval_run_id=job.eval_run_id,
@@ -289,11 +352,20 @@ def load_store(tracking_uri: str, experiment: str) -> StoreData:
                 curve = _history(client, job.eval_run_id, CURVE_METRIC)
                 if len(curve):
                     curves.append(curve.assign(**cell, job_run_id=job.run_id))
+                    try:
+                        checkpoints = read_curve_episodes(client, job.eval_run_id, Path(scratch))
+                    except Exception as err:  # noqa: BLE001 (older runs have no curve episodes)
+                        notes.append(f"eval run {job.eval_run_id[:8]} ({job.label}): cannot read its checkpoint "
+                                     f"episodes: {err}")
+                        checkpoints = pd.DataFrame()
+                    if len(checkpoints):
+                        curve_episodes.append(checkpoints.assign(**cell, job_run_id=job.run_id))
             if job.finetune_run_id:
                 loss = _history(client, job.finetune_run_id, LOSS_METRIC)
                 if len(loss):
                     losses.append(loss.assign(**cell, finetune_run_id=job.finetune_run_id))
-    episode_columns = [*(f for f in EPISODE_FIELDS if f != "moves"), *JOB_COLUMNS, "job_run_id",
+    episode_columns = [*(f for f in EPISODE_FIELDS if f not in ("moves", "answers", "first_wrong_line")),
+                       "wrong_category", "wrong_step", "wrong_state", *JOB_COLUMNS, "job_run_id",
                        "eval_run_id", *TRAIN_MAX_TAGS]
     return StoreData(
         experiment=experiment,
@@ -305,6 +377,8 @@ def load_store(tracking_uri: str, experiment: str) -> StoreData:
         losses=pd.concat(losses, ignore_index=True) if losses
         else pd.DataFrame(columns=[*JOB_COLUMNS, "finetune_run_id", "step", "value"]),
         notes=notes,
+        curve_episodes=pd.concat(curve_episodes, ignore_index=True) if curve_episodes else pd.DataFrame(),
+        galleries=galleries,
     )
 
 
@@ -494,6 +568,51 @@ def graded_table(cells: Cells) -> pd.DataFrame:
         "first_error_q3"])
 
 
+MAP_ERROR_SUBSETS = ("all", "interpolated", "extrapolated")
+
+
+def map_errors_table(cells: Cells) -> pd.DataFrame:
+    """Optimal setting: the failing episodes of each map job by the kind of their first wrong line
+    (map_errors.category), split by BFS step and by whether the state being expanded was the first on its
+    frontier."""
+    rows = []
+    for subset in MAP_ERROR_SUBSETS:
+        for direction, variant in cells.present("optimal"):
+            part = _subset(cells("optimal", direction, variant), subset)
+            failed = part[~part["success"] & part["wrong_category"].notna()]
+            for name, block in failed.groupby("wrong_category", sort=True):
+                steps = block["wrong_step"].value_counts()
+                rows.append({
+                    "subset": subset, "direction": direction, "variant": variant, "category": name,
+                    "n": len(block), "share": len(block) / len(failed),
+                    **{bucket: int(steps.get(bucket, 0)) for bucket in STEP_BUCKETS},
+                    "later_frontier_state": int((block["wrong_state"] > 0).sum()),
+                })
+    return pd.DataFrame(rows, columns=["subset", "direction", "variant", "category", "n", "share",
+                                       *STEP_BUCKETS, "later_frontier_state"])
+
+
+def map_errors_by_step_table(curve_episodes: pd.DataFrame) -> pd.DataFrame:
+    """How the kinds of first wrong lines move with training: for each job whose checkpoints were evaluated
+    (optimal setting), per checkpoint step and subset, the failing episodes by category."""
+    columns = ["subset", "direction", "variant", "seed", "step", "n_episodes", "success_rate", "category", "n",
+               "share"]
+    if curve_episodes.empty:
+        return pd.DataFrame(columns=columns)
+    rows = []
+    optimal = curve_episodes[curve_episodes["mode"] == "optimal"]
+    for subset in MAP_ERROR_SUBSETS:
+        part = _subset(optimal, subset)
+        for (direction, variant, seed, step), block in part.groupby(["direction", "variant", "seed", "step"],
+                                                                    sort=True):
+            failed = block[~block["success"] & block["wrong_category"].notna()]
+            for name, group in failed.groupby("wrong_category", sort=True):
+                rows.append({"subset": subset, "direction": direction, "variant": variant, "seed": seed,
+                             "step": int(step), "n_episodes": len(block), "success_rate": block["success"].mean(),
+                             "category": name, "n": len(group), "share": len(group) / len(failed)})
+    return pd.DataFrame(rows, columns=columns)
+
+
 REACHABLE_OUTCOMES = ("success", "deadend", "max_step", "invalid", "error")
 
 
@@ -534,6 +653,8 @@ def compute_tables(data: StoreData) -> dict[str, pd.DataFrame]:
     tables["table3"] = table3(cells)
     tables["mcnemar"] = mcnemar_table(cells)
     tables["graded_optimal"] = graded_table(cells)
+    tables["map_errors"] = map_errors_table(cells)
+    tables["map_errors_by_step"] = map_errors_by_step_table(data.curve_episodes)
     tables["outcomes_reachable"] = outcomes_table(cells)
     tables["jobs"] = jobs_table(data.jobs)
     return tables
@@ -626,6 +747,17 @@ GRADED_NOTE = (
     "the grid or hit an obstacle), reached the goal, was optimal (success), and whose map was exact; "
     "rates are means over seeds. first_error_*: quartiles, over wrong maps, of the first line (0-based, "
     "in the whole answer) where the answer departs from the golden one.")
+MAP_ERRORS_NOTE = (
+    "Failing optimal-setting episodes by the first line where the answer departs from the golden one: a "
+    "section or step header, a state name (named maps), a neighbour's coordinate, its label (a move written "
+    "for 'cut', 'cut' for a move, or the wrong move), a Backtrack or Plan line, or 'end' (the answer ran on "
+    "past the golden one). n: episodes (all seeds); share: of the cell's failing episodes; the step columns "
+    "count the thought lines by BFS step; later_frontier_state: lines of a state that was not the first "
+    "one expanded in its step.")
+MAP_ERRORS_BY_STEP_NOTE = (
+    "The same classification for the checkpoints of jobs run with eval.curve=true (each checkpoint decoded on "
+    "the first eval.curve_worlds test worlds): n_episodes and success_rate of the checkpoint, then its failing "
+    "episodes by category.")
 OUTCOMES_NOTE = (
     "Reachable setting: the share of each outcome (means over seeds); moves_over_optimal = mean of moves "
     "taken / optimal length over successful episodes.")
@@ -647,6 +779,11 @@ def write_tables(tables: dict[str, pd.DataFrame], out: Path) -> list[Path]:
                                              tables["graded_optimal"], rate_digits)
     markdown["outcomes_reachable"] = render_rows("Reachable setting, outcomes", OUTCOMES_NOTE,
                                                  tables["outcomes_reachable"], rate_digits)
+    markdown["map_errors"] = render_rows("Optimal setting: where failing answers first go wrong",
+                                         MAP_ERRORS_NOTE, tables["map_errors"], {"share": 3})
+    markdown["map_errors_by_step"] = render_rows(
+        "Optimal setting: where failing answers first go wrong, by training step", MAP_ERRORS_BY_STEP_NOTE,
+        tables["map_errors_by_step"], {"share": 3, "success_rate": 3})
     paths = []
     for key, frame in tables.items():
         csv = out / f"{key}.csv"
@@ -695,6 +832,11 @@ def write_figures(data: StoreData, out: Path) -> tuple[list[Path], dict[str, pd.
     fig4, fits = figs.moves_vs_optimal(data.episodes, out, figure4_map(Cells(data.episodes)))
     fig3 = figs.rapid_adaptation(data.curves, data.losses, out, keep=_figure3_jobs)
     paths += [p for p in (fig4, fig3) if p is not None]
+    for job in data.jobs:
+        name = f"gallery_{job.mode}_{job.direction}_{job.variant}_seed{job.seed}.png"
+        path = figs.episode_gallery(data.galleries.get(job.run_id, []), job.label, out / name)
+        if path is not None:
+            paths.append(path)
     return paths, {"fig4_fits": fits}
 
 
@@ -730,6 +872,8 @@ def render_index(data: StoreData, tracking_uri: str, tables: dict[str, pd.DataFr
               " ([csv](tables/graded_optimal.csv))",
               "- [Reachable setting, outcomes](tables/outcomes_reachable.md)"
               " ([csv](tables/outcomes_reachable.csv))",
+              "- [Where failing answers first go wrong](tables/map_errors.md) ([csv](tables/map_errors.csv)),"
+              " [by training step](tables/map_errors_by_step.md) ([csv](tables/map_errors_by_step.csv))",
               "- [Job runs used](tables/jobs.csv)", ""]
     for key, (title, _) in SUCCESS_TABLES.items():
         section = render_success(title, tables[key]).split("\n## ")[1]  # the 'all' section

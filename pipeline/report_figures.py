@@ -16,10 +16,10 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 from matplotlib.ticker import MaxNLocator
 
+from pipeline.texts import VARIANTS
 from pipeline.tracking import PAPER_ROWS, TRAIN_MAX_TAGS
 
-VARIANT_ORDER = ("marking-deadend", "no-marking", "no-backtrack", "no-marking-no-backtrack", "no-all",
-                 "no-all-no-backtrack", "none", "cot", "dfs")
+VARIANT_ORDER = VARIANTS
 HEATMAP_METRICS = {  # name -> (title, outcome it counts or None for success, modes it applies to)
     "success": ("SUCCESS rate", None, ("optimal", "reachable")),
     "deadend": ("DEADEND rate", "deadend", ("reachable",)),
@@ -225,5 +225,94 @@ def rapid_adaptation(curves: pd.DataFrame, losses: pd.DataFrame, out: Path,
         else:
             ax.legend(fontsize=7)
     path = out / "fig3_rapid_adaptation.png"
+    fig.savefig(path, dpi=DPI)
+    return path
+
+
+# ---------------------------------------------------------------------------------------------- gallery
+GALLERY_PER_OUTCOME = 3
+_OUTCOME_COLOURS = {True: "#1a9850", False: "#d73027"}
+
+
+def gallery_picks(records: list[dict], per_outcome: int = GALLERY_PER_OUTCOME) -> list[dict]:
+    """The episodes a gallery shows: the first ``per_outcome`` successes and failures by world index, the
+    failures among those that moved at all first (a plan or walk to draw), so the choice is deterministic."""
+    ordered = sorted(records, key=lambda r: r["world_index"])
+    won = [r for r in ordered if r.get("success")]
+    lost = [r for r in ordered if not r.get("success")]
+    lost = sorted(lost, key=lambda r: (not r.get("moves"), r["world_index"]))
+    return won[:per_outcome] + lost[:per_outcome]
+
+
+def _walk_cells(world, moves: list[str]) -> list[tuple[int, int]]:
+    from pipeline.world import step
+
+    cells = [world.start]
+    for move in moves:
+        try:
+            cells.append(step(cells[-1], move))
+        except ValueError:
+            break
+        if not world.is_free(cells[-1]):
+            break  # the first move into an obstacle or out of the grid ends the drawing there
+    return cells
+
+
+def draw_world(ax, world, moves: list[str], success: bool, title: str) -> None:
+    """A world like the paper's Figure 1: walls, pits, start, goal, the optimal path (dashed) and the
+    model's plan or walk over it, green when it succeeded and red when it did not."""
+    x0, y0 = world.x0, world.y0
+    ax.set_xlim(x0 - 0.5, x0 + world.size_x - 0.5)
+    ax.set_ylim(y0 - 0.5, y0 + world.size_y - 0.5)
+    ax.set_aspect("equal")
+    ax.set_facecolor("white")
+    for x, y in world.walls:
+        ax.add_patch(Rectangle((x - 0.5, y - 0.5), 1, 1, color="0.25"))
+    for x, y in world.pits:
+        ax.add_patch(Rectangle((x - 0.5, y - 0.5), 1, 1, color="#fdae61"))
+    path = np.array(world.shortest_path())
+    ax.plot(path[:, 0], path[:, 1], linestyle="--", color="0.45", linewidth=1.2, zorder=2)
+    walk = np.array(_walk_cells(world, moves))
+    colour = _OUTCOME_COLOURS[bool(success)]
+    ax.plot(walk[:, 0], walk[:, 1], color=colour, linewidth=2.6, alpha=0.8, zorder=3)
+    if not success and len(walk):
+        ax.plot(walk[-1, 0], walk[-1, 1], marker="x", color=colour, markersize=10, mew=2.5, zorder=4)
+    ax.plot(*world.start, marker="o", color="#4575b4", markersize=9, zorder=5)
+    ax.plot(*world.goal, marker="*", color="#ffd700", markeredgecolor="k", markersize=14, zorder=5)
+    ax.set_xticks(range(x0, x0 + world.size_x))
+    ax.set_yticks(range(y0, y0 + world.size_y))
+    ax.tick_params(labelsize=6, length=0)
+    ax.grid(True, color="0.85", linewidth=0.5)
+    for x in np.arange(x0 - 0.5, x0 + world.size_x, 1.0):
+        ax.axvline(x, color="0.8", linewidth=0.5, zorder=1)
+    for y in np.arange(y0 - 0.5, y0 + world.size_y, 1.0):
+        ax.axhline(y, color="0.8", linewidth=0.5, zorder=1)
+    ax.set_title(title, fontsize=8, color=colour)
+
+
+def episode_gallery(cases: list[tuple], label: str, path: Path) -> Path | None:
+    """One job's gallery: its picked episodes, successes on the top row and failures below.
+    ``cases``: (world, record) pairs from :func:`gallery_picks`."""
+    if not cases:
+        return None
+    won = [c for c in cases if c[1].get("success")]
+    lost = [c for c in cases if not c[1].get("success")]
+    ncols = max(len(won), len(lost), 1)
+    rows = [row for row in (won, lost) if row]
+    fig = Figure(figsize=(2.6 * ncols + 0.4, 2.8 * len(rows) + 0.6), layout="constrained")
+    axes = fig.subplots(len(rows), ncols, squeeze=False)
+    for r, row in enumerate(rows):
+        for c in range(ncols):
+            ax = axes[r][c]
+            if c >= len(row):
+                ax.set_axis_off()
+                continue
+            world, record = row[c]
+            outcome = record.get("outcome") or ("success" if record.get("success") else "fail")
+            draw_world(ax, world, list(record.get("moves") or []), bool(record.get("success")),
+                       f"world {record['world_index']} ({world.size_x}x{world.size_y}): {outcome}")
+    fig.suptitle(f"{label}: walls dark, pits orange, start blue, goal star; optimal path dashed, the model's "
+                 "moves in colour (x: where a failure stopped)", fontsize=9)
+    path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=DPI)
     return path

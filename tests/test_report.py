@@ -7,6 +7,7 @@ import logging
 import math
 import time
 
+import pandas as pd
 import pytest
 from scipy.stats import binomtest
 
@@ -384,3 +385,53 @@ def test_callback_builds_report(store, tmp_path):
     assert (tmp_path / "r" / "report.md").stat().st_size > 0
     runs = store.client.search_runs([store.client.get_experiment_by_name("empty-too").experiment_id])
     assert [r.data.tags[KIND_TAG] for r in runs] == [REPORT_KIND]
+
+
+# ------------------------------------------------------------------------- first wrong lines and galleries
+
+
+def _graded(world_obj, variant: str, answers: list[str]) -> list[dict]:
+    from pipeline.evaluate import optimal_record
+
+    stats = {"size_x": world_obj.size_x, "size_y": world_obj.size_y, "optimal_length": 4, "dead_ends": 0,
+             "up_right_only": True, "interpolated": True}
+    return [optimal_record(i, world_obj, stats, text, None, "bwd", variant) for i, text in enumerate(answers)]
+
+
+def test_map_errors_count_failing_answers_by_the_kind_of_their_first_wrong_line():
+    from pipeline import World
+    from pipeline.texts import answer
+
+    grid = World(3, 3, 0, 0, ((1, 1),), ((0, 2),), (0, 0), (2, 2))
+    golden = answer(grid, "bwd", "marking-deadend", "optimal").split("\n")
+    # Answers that go wrong and then stop (no plan: they fail).
+    wrong_label = golden[:5] + ["cut"]                        # Step 1: a free cell written 'cut'
+    wrong_cell = golden[:2] + ["(9, 9)"]                      # Step 1: the first neighbour's coordinate
+    records = _graded(grid, "marking-deadend", ["\n".join(golden), "\n".join(wrong_label), "\n".join(wrong_label),
+                                                "\n".join(wrong_cell)])
+    assert records[0]["success"] and records[0]["first_wrong_line"] is None
+    frame = report.episodes_frame(records).assign(mode="optimal", direction="bwd", variant="marking-deadend",
+                                                   seed="0")
+    table = report.map_errors_table(report.Cells(frame))
+    rows = table[table["subset"] == "all"].set_index("category")
+    assert rows.loc["label: cut for move", "n"] == 2 and rows.loc["coordinate", "n"] == 1
+    assert rows.loc["label: cut for move", "share"] == pytest.approx(2 / 3)
+    assert rows.loc["label: cut for move", "step 1"] == 2 and rows["later_frontier_state"].sum() == 0
+    by_step = report.map_errors_by_step_table(pd.concat([frame.assign(step=100), frame.iloc[:2].assign(step=200)]))
+    at = by_step[by_step["subset"] == "all"].set_index(["step", "category"])
+    assert at.loc[(100, "label: cut for move"), "n"] == 2 and at.loc[(200, "label: cut for move"), "n"] == 1
+    assert at.loc[(200, "label: cut for move"), "success_rate"] == pytest.approx(0.5)
+
+
+def test_a_gallery_draws_successes_above_failures_chosen_by_world_index(tmp_path):
+    from pipeline import World
+    from pipeline.report_figures import episode_gallery, gallery_picks
+
+    grid = World(3, 3, 0, 0, ((1, 1),), ((0, 2),), (0, 0), (2, 2))
+    records = [{"world_index": i, "success": i % 3 == 0, "outcome": "success" if i % 3 == 0 else "fail",
+                "moves": [] if i == 1 else ["right", "right", "up", "up"]} for i in range(12)]
+    picks = gallery_picks(list(reversed(records)))
+    assert [r["world_index"] for r in picks] == [0, 3, 6, 2, 4, 5]   # a failure that never moved goes last
+    path = episode_gallery([(grid, r) for r in picks], "MARKING deadend (BWD, optimal)", tmp_path / "g.png")
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert episode_gallery([], "empty", tmp_path / "none.png") is None and not (tmp_path / "none.png").exists()

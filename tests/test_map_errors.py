@@ -1,0 +1,107 @@
+"""Classifying the first wrong line of an answer: section, BFS step, frontier position, line kind, neighbour."""
+
+from __future__ import annotations
+
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from pipeline import World
+from pipeline.map_errors import LINE_KINDS, NEIGHBOURS, STEP_BUCKETS, category, first_wrong_line, step_bucket
+from pipeline.texts import answer
+
+# 3 x 3, start (0, 0), goal (2, 2); wall (1, 1), pit (0, 2): the path goes right along y = 0, then up.
+WORLD = World(3, 3, 0, 0, ((1, 1),), ((0, 2),), (0, 0), (2, 2))
+
+
+def _with(variant: str, index: int, line: str | None, direction: str = "bwd") -> str:
+    lines = answer(WORLD, direction, variant, "optimal").split("\n")
+    if line is None:
+        return "\n".join(lines[:index])
+    lines[index] = line
+    return "\n".join(lines)
+
+
+def _golden(variant: str, direction: str = "bwd") -> list[str]:
+    return answer(WORLD, direction, variant, "optimal").split("\n")
+
+
+def test_the_golden_answer_has_no_wrong_line():
+    for variant in ("marking-deadend", "no-all", "marking-deadend-named", "none", "cot"):
+        assert first_wrong_line(WORLD, "fwd", variant, "\n".join(_golden(variant, "fwd"))) is None
+
+
+def test_labels_name_what_the_neighbour_is_and_how_the_label_is_wrong():
+    golden = _golden("marking-deadend")
+    # BWD from the goal (2, 2): Step 1 lists (2, 3) outside, (2, 1) free, (1, 2) free, (3, 2) outside.
+    assert golden[2:10] == ["(2, 3)", "cut", "(2, 1)", "up", "(1, 2)", "right", "(3, 2)", "cut"]
+    site = first_wrong_line(WORLD, "bwd", "marking-deadend", _with("marking-deadend", 3, "down"))
+    assert (site.section, site.line, site.step, site.state, site.neighbour, site.label_error) == \
+        ("thought", "label", 1, 0, "outside", "move for cut")
+    site = first_wrong_line(WORLD, "bwd", "marking-deadend", _with("marking-deadend", 5, "cut"))
+    assert (site.neighbour, site.label_error, site.expected, site.got) == ("free", "cut for move", "up", "cut")
+    site = first_wrong_line(WORLD, "bwd", "marking-deadend", _with("marking-deadend", 7, "up"))
+    assert site.label_error == "wrong move" and category(site) == "label: wrong move"
+
+
+def test_walls_pits_visited_cells_and_later_frontier_states():
+    golden = _golden("marking-deadend")
+    step2 = golden.index("Step 2:")
+    # Step 2 expands (2, 1) then (1, 2): (2, 1)'s neighbours are (2, 2) visited, (2, 0), (1, 1) wall, (3, 1).
+    assert golden[step2 + 1:step2 + 9] == ["(2, 2)", "cut", "(2, 0)", "up", "(1, 1)", "cut", "(3, 1)", "cut"]
+    kinds = {}
+    for offset in (2, 6):
+        site = first_wrong_line(WORLD, "bwd", "marking-deadend", _with("marking-deadend", step2 + offset, "up"))
+        kinds[offset] = (site.step, site.state, site.neighbour)
+    assert kinds == {2: (2, 0, "visited"), 6: (2, 0, "wall")}
+    # (1, 2)'s neighbours come next: (1, 3) outside, (1, 1) wall, (0, 2) pit, (2, 2) visited.
+    assert golden[step2 + 9:step2 + 17] == ["(1, 3)", "cut", "(1, 1)", "cut", "(0, 2)", "cut", "(2, 2)", "cut"]
+    site = first_wrong_line(WORLD, "bwd", "marking-deadend", _with("marking-deadend", step2 + 14, "right"))
+    assert (site.step, site.state, site.neighbour) == (2, 1, "pit")
+    site = first_wrong_line(WORLD, "bwd", "marking-deadend", _with("marking-deadend", step2 + 13, "(0, 1)"))
+    assert (site.line, site.step, site.state, site.neighbour) == ("coordinate", 2, 1, None)
+
+
+def test_no_marking_labels_visited_cells_with_moves_and_still_tells_them_apart():
+    golden = _golden("no-marking")
+    step2 = golden.index("Step 2:")
+    assert golden[step2 + 1:step2 + 3] == ["(2, 2)", "down"]
+    site = first_wrong_line(WORLD, "bwd", "no-marking", _with("no-marking", step2 + 2, "up"))
+    assert (site.neighbour, site.label_error) == ("visited", "wrong move")
+
+
+def test_named_maps_count_states_by_their_from_lines():
+    golden = _golden("no-all-named")
+    step2 = golden.index("Step 2:")
+    assert golden[step2 + 1].startswith("From ")
+    second = [i for i, line in enumerate(golden) if line.startswith("From ")][2]
+    site = first_wrong_line(WORLD, "bwd", "no-all-named", _with("no-all-named", second, "From (0, 0):"))
+    assert (site.line, site.step, site.state) == ("state name", 2, 1)
+
+
+def test_headers_backtrack_plan_and_length():
+    golden = _golden("marking-deadend")
+    site = first_wrong_line(WORLD, "bwd", "marking-deadend", _with("marking-deadend", 1, "Step 2:"))
+    assert (site.line, site.step) == ("step header", 1)
+    back = golden.index("Backtrack:")
+    site = first_wrong_line(WORLD, "bwd", "marking-deadend", _with("marking-deadend", back + 1, "(9, 9)"))
+    assert (site.section, site.line, site.step, site.state) == ("backtrack", "backtrack", None, None)
+    plan = golden.index("Plan:")
+    site = first_wrong_line(WORLD, "bwd", "marking-deadend", _with("marking-deadend", plan + 1, None))
+    assert (site.section, site.line, site.got, site.expected) == ("plan", "plan", None, golden[plan + 1])
+    site = first_wrong_line(WORLD, "bwd", "marking-deadend", "\n".join(golden + ["up"]))
+    assert (site.section, site.line, site.index, site.got) == ("end", "end", len(golden), "up")
+
+
+def test_step_buckets():
+    assert [step_bucket(s) for s in (None, 1, 2, 3, 5, 6, 40)] == [None, *STEP_BUCKETS[:2], STEP_BUCKETS[2],
+                                                                  STEP_BUCKETS[2], STEP_BUCKETS[3], STEP_BUCKETS[3]]
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.one_of(st.none(), st.binary(max_size=50), st.text(max_size=300),
+                 st.lists(st.sampled_from(["Thought:", "Step 1:", "(2, 2)", "cut", "up", "Plan:", "", "From (1, 1):"]),
+                          max_size=60).map("\n".join)))
+@pytest.mark.parametrize("variant", ["marking-deadend", "no-all-named", "none"])
+def test_model_text_never_raises(variant, text):
+    site = first_wrong_line(WORLD, "fwd", variant, text)
+    assert site is None or (site.line in LINE_KINDS and site.neighbour in (None, *NEIGHBOURS))
