@@ -13,7 +13,10 @@ records) is shared with the vLLM backend (`pipeline.vllm_backend`): a backend on
 
 from __future__ import annotations
 
+import inspect
+
 from dataclasses import dataclass, field
+from functools import lru_cache
 from typing import Callable, Iterable, Literal, NamedTuple, Protocol, Sequence
 
 import torch
@@ -151,6 +154,7 @@ def play_episodes(
     max_followup_tokens: int = 64,
     on_episode: Callable[[EpisodeResult], None] | None = None,
     choose_move: MoveChooser | None = None,
+    prompt: str = "paper",
 ) -> list[EpisodeResult]:
     """Play one episode per world, up to `batch_size` at a time; a finished episode's slot is refilled.
 
@@ -159,6 +163,7 @@ def play_episodes(
     An answer cut at its cap (`max_new_tokens` for the first answer, `max_followup_tokens` for later ones)
     is scored as it stands and, if the episode goes on, closed with the turn-end ids.
     `on_episode` is called as each episode ends (in order of ending); the list returned is in input order.
+    `prompt` is the prompt form (`texts.PROMPTS`) the model was trained with.
     """
     choose = choose_move or (lambda text, _observation: parse_action(text))
     end_ids = turn_end_ids(tokenizer, fmt)
@@ -180,7 +185,7 @@ def play_episodes(
             index, world = item
             env = GridEnv(world, max_steps=max_steps)
             live[index] = _Episode(index, env, env.reset())
-            requests[index] = Request(encode_prompt(tokenizer, fmt, prompt_turns(world)), max_new_tokens)
+            requests[index] = Request(encode_prompt(tokenizer, fmt, prompt_turns(world, prompt)), max_new_tokens)
         if not live:
             break
         continuations = backend.continue_sequences(requests)
@@ -246,7 +251,7 @@ class _Rows:
         self.mask = torch.cat([self.mask, chunk_mask], dim=1)
         self.lengths = [n + len(chunk) for n, chunk in zip(self.lengths, chunks)]
         out = model(input_ids=ids, attention_mask=self.mask, position_ids=positions,
-                    past_key_values=self.cache, use_cache=True, logits_to_keep=1)
+                    **cache_kwarg(model, self.cache), use_cache=True, logits_to_keep=1)
         return out.logits[:, -1]
 
     def step(self, model, tokens: Sequence[int]) -> torch.Tensor:
@@ -257,7 +262,7 @@ class _Rows:
         self.mask = torch.cat([self.mask, torch.ones_like(ids)], dim=1)
         self.lengths = [n + 1 for n in self.lengths]
         out = model(input_ids=ids, attention_mask=self.mask, position_ids=positions,
-                    past_key_values=self.cache, use_cache=True, logits_to_keep=1)
+                    **cache_kwarg(model, self.cache), use_cache=True, logits_to_keep=1)
         return out.logits[:, -1]
 
     def select(self, rows: Sequence[int], config) -> _Rows:
@@ -296,6 +301,24 @@ class _Rows:
         mask = (torch.arange(width, device=device)[None, :]
                 >= width - torch.tensor(lengths, device=device)[:, None]).long()
         return _Rows(DynamicCache(layers, config=config), mask, lengths)
+
+
+def cache_kwarg(model, cache) -> dict:
+    """The cache as the model's forward names it: ``cache`` in current transformers 5 releases (which warn
+    that ``past_key_values`` goes in 5.40), ``past_key_values`` in earlier ones."""
+    return {_cache_name(type(model)): cache}
+
+
+@lru_cache(maxsize=None)
+def _cache_name(model_class: type) -> str:
+    parameters = inspect.signature(model_class.forward).parameters
+    for name in ("cache", "past_key_values"):
+        if name in parameters:
+            return name
+    # A wrapper that passes **kwargs on: the name transformers' own models take.
+    from transformers import LlamaForCausalLM
+
+    return "cache" if "cache" in inspect.signature(LlamaForCausalLM.forward).parameters else "past_key_values"
 
 
 class HFDecoder:
@@ -367,6 +390,7 @@ class HFDecoder:
         on_episode: Callable[[EpisodeResult], None] | None = None,
         strategy: HistoryStrategy = "cached",
         choose_move: MoveChooser | None = None,
+        prompt: str = "paper",
     ) -> list[EpisodeResult]:
         """Play every world's episode, `batch_size` at a time, each keeping its KV cache across turns.
 
@@ -385,6 +409,7 @@ class HFDecoder:
                 batch_size=1 if strategy == "generate" else self.batch_size,
                 max_steps=max_steps, max_new_tokens=self.max_new_tokens,
                 max_followup_tokens=self.max_followup_tokens, on_episode=on_episode, choose_move=choose_move,
+                prompt=prompt,
             )
 
     # -- the engine -----------------------------------------------------------------------------------

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import multiprocessing
 import random
+import signal
 from dataclasses import dataclass
 from itertools import count
 from collections.abc import Iterator
@@ -139,10 +140,16 @@ def _candidates(seed: int | str, split: str, cfg: GeneratorConfig, n: int, worke
         for job in jobs:
             yield from _sample_chunk(job)
         return
-    with multiprocessing.Pool(workers) as pool:
+    with multiprocessing.Pool(workers, initializer=_default_sigterm) as pool:
         # imap keeps index order; the pool is torn down as soon as the caller stops pulling.
         for worlds in pool.imap(_sample_chunk, jobs):
             yield from worlds
+
+
+def _default_sigterm() -> None:
+    # Workers are forked from a job that turns SIGTERM into KeyboardInterrupt (to unwind its MLflow runs);
+    # the pool stops its workers with SIGTERM, which must end them quietly, not print a traceback each.
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 def generate_worlds(

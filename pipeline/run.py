@@ -9,6 +9,9 @@ import logging
 import os
 import shutil
 import signal
+import sys
+import warnings
+from contextlib import contextmanager
 from dataclasses import asdict
 from pathlib import Path
 
@@ -22,14 +25,17 @@ from pipeline.data_build import (
     TEST_CONVERSATIONS, TEST_STATS, TEST_WORLDS, TRAIN_CONVERSATIONS, TextSpec, build_splits, read_conversations,
     write_dataset,
 )
+from pipeline.world import WorldError
 from pipeline.steps import StepRun, clear_inherited_run, get_or_run
-from pipeline.tracking import StoreError, check_store
-from pipeline.tracking import CHECKPOINTS_ARTIFACT, CURVE_METRIC, EPISODES_ARTIFACT, JOB_KIND, KIND_TAG, PAPER_ROWS, TRAIN_MAX_TAGS, ensure_experiment, step_run_tag
+from pipeline.tracking import StoreError, check_store, ui_path
+from pipeline.tracking import CHECKPOINTS_ARTIFACT, CURVE_EPISODES_ARTIFACT, CURVE_METRIC, EPISODES_ARTIFACT, JOB_KIND, KIND_TAG, PAPER_ROWS, TRAIN_MAX_TAGS, ensure_experiment, step_run_tag
 
 log = logging.getLogger("pipeline.run")
 
+# Where the README's `mlflow ui` command serves the store.
+UI_ADDRESS = "http://127.0.0.1:5000"
 # Bumped when a step's code changes what it writes, so old runs are not reused for new semantics.
-STEP_VERSIONS = {"data-build": 1, "finetune": 1, "eval": 1}
+STEP_VERSIONS = {"data-build": 1, "finetune": 1, "eval": 2}   # eval 2: records keep the answers
 
 register_configs()
 # Our own bars (data-build, training, eval) say what is happening; per-file download bars only add noise.
@@ -56,10 +62,12 @@ class PrepareStore(Callback):
 
     def on_run_start(self, config: DictConfig, **kwargs) -> None:
         # Before Hydra makes its run folder under tracking.root: an unusable store is named, not a raw mkdir.
-        try:
-            check_store(config.tracking.uri, _artifact_root(config))
-        except StoreError as error:
-            raise ConfigError(f"tracking.root={config.tracking.root!r}, tracking.uri={config.tracking.uri!r}: {error}") from None
+        with errors_for_people():
+            try:
+                check_store(config.tracking.uri, _artifact_root(config))
+            except StoreError as error:
+                raise ConfigError(f"tracking.root={config.tracking.root!r}, tracking.uri={config.tracking.uri!r}: "
+                                  f"{error}") from None
 
 
 # ---------------------------------------------------------------------------------------------------- hashes
@@ -107,18 +115,79 @@ def data_build_body(cfg: DictConfig, spec: TextSpec, step_dir: Path) -> None:
         "test_up_right_only": summary["test_up_right_only"], "test_interpolated": summary["test_interpolated"],
     })
     mlflow.log_artifacts(str(out))
+    base = mlflow.get_artifact_uri()
+    for artifact, split in ((TRAIN_CONVERSATIONS, "train"), (TEST_CONVERSATIONS, "test")):
+        log_dataset(f"{base}/{artifact}", out / artifact, _dataset_name(spec, split), split)
 
 
-def finetune_body(cfg: DictConfig, data: StepRun, step_dir: Path) -> None:
+def _dataset_name(spec: TextSpec, split: str) -> str:
+    return "-".join(p for p in (spec.direction, spec.variant, spec.mode, split) if p)
+
+
+def log_dataset(uri: str, local: Path, name: str, context: str) -> None:
+    """Log a conversations file as an MLflow dataset input of the active run (source and digest), so the
+    runs table's Dataset column and the lineage show which data a run used."""
+    from mlflow.data.dataset_source_registry import resolve_dataset_source
+    from mlflow.data.meta_dataset import MetaDataset
+
+    digest = hashlib.sha256(Path(local).read_bytes()).hexdigest()[:16]
+    with warnings.catch_warnings():
+        # MLflow registers the same local-file source class for the "" and "file" schemes and warns that a
+        # file:// URI matches both; they are one and the same.
+        warnings.filterwarnings("ignore", message="The specified dataset source can be interpreted in multiple ways")
+        source = resolve_dataset_source(uri)
+    mlflow.log_input(MetaDataset(source, name=name, digest=digest), context=context)
+
+
+def _log_step_dataset(data: StepRun, spec: TextSpec, artifact: str, split: str, context: str) -> None:
+    uri = f"{mlflow.get_run(data.run_id).info.artifact_uri}/{artifact}"
+    log_dataset(uri, Path(data.artifact(artifact)), _dataset_name(spec, split), context)
+
+
+def log_model(cfg: DictConfig, model_dir: str) -> None:
+    """The finetuned model as an MLflow logged model: the transformers flavour (weights copied, loadable with
+    ``mlflow.transformers.load_model``), or for large models a reference to the run's ``model/`` artifacts."""
+    import transformers
+
+    if cfg.model.log_model == "transformers":
+        import mlflow.transformers
+        import torch
+
+        from pipeline.modeling import load_model, load_tokenizer
+
+        # From the loaded model, not the folder: MLflow 3.17 cannot read a transformers 5 checkpoint folder
+        # (its task table holds class names as strings there).
+        model = load_model(model_dir, dtype=cfg.model.dtype, trust_remote_code=cfg.model.trust_remote_code)
+        tokenizer = load_tokenizer(model_dir, trust_remote_code=cfg.model.trust_remote_code)
+        quiet = logging.getLogger("mlflow.transformers")
+        level = quiet.level
+        quiet.setLevel(logging.ERROR)  # no model card or licence to look up for a model trained here
+        try:
+            mlflow.transformers.log_model(
+                {"model": model, "tokenizer": tokenizer}, name="model", task="text-generation",
+                pip_requirements=[f"torch=={torch.__version__.split('+')[0]}",
+                                  f"transformers=={transformers.__version__}"],
+            )
+        finally:
+            quiet.setLevel(level)
+    else:
+        run_id = mlflow.active_run().info.run_id
+        mlflow.create_external_model(name="model", source_run_id=run_id, model_type="transformers",
+                                     params={"weights": f"runs:/{run_id}/model"})
+
+
+def finetune_body(cfg: DictConfig, spec: TextSpec, data: StepRun, step_dir: Path) -> None:
     from pipeline.finetune_step import result_metrics, run_finetune
 
     # Prefixed: transformers' MLflowCallback logs the Trainer's own arguments under their plain names.
     _log_config(cfg.model, "model")
     _log_config(cfg.train, "train")
     train_file = data.artifact(TRAIN_CONVERSATIONS)
+    _log_step_dataset(data, spec, TRAIN_CONVERSATIONS, "train", "training")
     result = run_finetune(cfg, read_conversations(train_file), train_file, step_dir)
     mlflow.log_metrics(result_metrics(result))
     mlflow.log_artifacts(result.model_dir, "model")
+    log_model(cfg, result.model_dir)
     if cfg.train.log_checkpoints:
         mlflow.log_artifacts(str(_checkpoint_models(step_dir, Path(result.model_dir))), CHECKPOINTS_ARTIFACT)
 
@@ -148,8 +217,13 @@ def _evaluate_curve(cfg: DictConfig, spec: TextSpec, variant: str, finetune: Ste
         records = evaluate(
             make_decoder(cfg, model_dir), worlds[:n], stats[:n], mode=spec.mode, direction=spec.direction or "fwd",
             variant=variant, max_steps=cfg.eval.max_steps, partial_path=step_dir / f"curve-{train_step}.partial.jsonl",
+            prompt=spec.prompt,
         )
         mlflow.log_metric(CURVE_METRIC, metrics(records)["success_rate"], step=train_step)
+        episodes = step_dir / "curve" / f"step-{train_step}.jsonl"
+        episodes.parent.mkdir(parents=True, exist_ok=True)
+        episodes.write_text("".join(json.dumps(record) + "\n" for record in records))
+        mlflow.log_artifact(str(episodes), CURVE_EPISODES_ARTIFACT)
 
 
 def eval_body(cfg: DictConfig, spec: TextSpec, variant: str, data: StepRun, finetune: StepRun, step_dir: Path) -> None:
@@ -157,6 +231,7 @@ def eval_body(cfg: DictConfig, spec: TextSpec, variant: str, data: StepRun, fine
     from pipeline.world import load_worlds
 
     _log_config(cfg.eval, "eval")
+    _log_step_dataset(data, spec, TEST_CONVERSATIONS, "test", "evaluation")
     worlds = load_worlds(data.artifact(TEST_WORLDS))
     stats = [json.loads(line) for line in Path(data.artifact(TEST_STATS)).read_text().splitlines()]
     n = cfg.eval.n_worlds or len(worlds)
@@ -166,7 +241,7 @@ def eval_body(cfg: DictConfig, spec: TextSpec, variant: str, data: StepRun, fine
     records = evaluate(
         decoder, worlds[:n], stats[:n], mode=spec.mode,
         direction=spec.direction or "fwd", variant=variant, max_steps=cfg.eval.max_steps,
-        partial_path=step_dir / "episodes.partial.jsonl",
+        partial_path=step_dir / "episodes.partial.jsonl", prompt=spec.prompt,
     )
     episodes = step_dir / EPISODES_ARTIFACT
     episodes.write_text("".join(json.dumps(record) + "\n" for record in records))
@@ -187,7 +262,7 @@ def run_job(cfg: DictConfig) -> dict | None:
             return None
         raise
     direction, mode = str(cfg.direction.value), str(cfg.mode.value)
-    spec = TextSpec.of(direction, variant, mode, seed=cfg.data.seed)
+    spec = TextSpec.of(direction, variant, mode, seed=cfg.data.seed, prompt=cfg.model.prompt)
     hashes = step_hashes(cfg, spec)
     clear_inherited_run()
     from transformers.utils import logging as hf_logging
@@ -214,7 +289,10 @@ def run_job(cfg: DictConfig) -> dict | None:
             return done
 
         data = step("data-build", lambda d: data_build_body(cfg, spec, d))
-        finetune = step("finetune", lambda d: finetune_body(cfg, data, d))
+        # The job's own row in the runs table names its data too (the step runs below it hold the same).
+        _log_step_dataset(data, spec, TRAIN_CONVERSATIONS, "train", "training")
+        _log_step_dataset(data, spec, TEST_CONVERSATIONS, "test", "evaluation")
+        finetune = step("finetune", lambda d: finetune_body(cfg, spec, data, d))
         evaluation = step("eval", lambda d: eval_body(cfg, spec, variant, data, finetune, d))
         results = mlflow.get_run(evaluation.run_id).data.metrics
         mlflow.log_metrics({key: value for key, value in results.items() if key != "step_seconds"})
@@ -223,10 +301,32 @@ def run_job(cfg: DictConfig) -> dict | None:
         f"[job] {direction} {variant} {mode}: success {results.get('success_rate', float('nan')):.3f} "
         f"(interp {results.get('success_rate_interp', float('nan')):.3f}, "
         f"extrap {results.get('success_rate_extrap', float('nan')):.3f}) over {int(results.get('n_episodes', 0))} "
-        f"worlds | reused: {', '.join(reused) or 'nothing'} | job run {job.info.run_id}",
+        f"worlds | reused: {', '.join(reused) or 'nothing'} | job run {job.info.run_id}\n"
+        f"[job] in `mlflow ui` (README): {UI_ADDRESS}/{ui_path(experiment_id, job.info.run_id)}",
         flush=True,
     )
     return results
+
+
+@contextmanager
+def errors_for_people():
+    """A configuration or input error ends a single run with one line on stderr (``error: ...``) and exit
+    status 2, without a traceback; ``HYDRA_FULL_ERROR=1`` shows the traceback. In a multirun the error is
+    raised as usual, so the sweep records the failed job and goes on."""
+    try:
+        yield
+    except (ConfigError, WorldError) as error:
+        if os.environ.get("HYDRA_FULL_ERROR") == "1" or _multirun():
+            raise
+        print(f"error: {error}", file=sys.stderr, flush=True)
+        raise SystemExit(2) from None
+
+
+def _multirun() -> bool:
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    return HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
 
 
 def _interrupt(signum, frame) -> None:
@@ -238,7 +338,8 @@ def _interrupt(signum, frame) -> None:
 def main(cfg: DictConfig) -> float | None:
     """Hydra entry point; returns the success rate (what a sweeper would optimise)."""
     signal.signal(signal.SIGTERM, _interrupt)
-    results = run_job(cfg)
+    with errors_for_people():
+        results = run_job(cfg)
     return None if results is None else results.get("success_rate")
 
 

@@ -12,18 +12,16 @@ of an interrupted step resumes instead of starting over.
 
 from __future__ import annotations
 
-import fcntl
 import os
 import time
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Callable
 
 import mlflow
 from mlflow.entities import RunStatus
 
-from pipeline.tracking import HASH_TAG, KIND_TAG, STEP_KIND, STEP_TAG
+from pipeline.tracking import HASH_TAG, KIND_TAG, STEP_KIND, STEP_TAG, file_lock
 
 NOTE_TAG = "cogmap.note"
 # How many top-level artifacts the step logged; a reused run must still have some if it had any.
@@ -53,18 +51,6 @@ class StepRun:
                 f"{self.step} run {self.run_id} (hash {self.hash}) has no readable artifact {path!r}: {error}. "
                 f"Delete that run (`mlflow runs delete --run-id {self.run_id}`) so the step is built again."
             ) from error
-
-
-@contextmanager
-def file_lock(path: Path) -> Iterator[None]:
-    """An exclusive advisory lock, released by the kernel even if the holder is killed."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "a") as handle:
-        fcntl.flock(handle, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(handle, fcntl.LOCK_UN)
 
 
 def _runs_with_hash(experiment_id: str, step: str, step_hash: str, status: str) -> list:

@@ -11,11 +11,20 @@ Layout of an experiment:
 
 The eval run logs the metrics in ``EVAL_METRICS`` and the artifact ``episodes.jsonl`` (one record per test
 world, fields ``EPISODE_FIELDS``); with a checkpoint curve it also logs ``curve_success_rate`` with
-``step`` = the checkpoint's training step. The finetune run holds transformers' training metrics
-(``loss`` by step), the model under ``model/`` and its tokenizer.
+``step`` = the checkpoint's training step, and each checkpoint's episodes as ``curve/step-<n>.jsonl``. The
+finetune run holds transformers' training metrics (``loss`` by step), the model under ``model/`` with its
+tokenizer, and an MLflow logged model. Data-build, finetune and eval runs log the conversations they use as
+MLflow dataset inputs. The experiment is tagged ``mlflow.experimentKind=custom_model_development``.
 """
 
 from __future__ import annotations
+
+import fcntl
+from contextlib import contextmanager, nullcontext
+from pathlib import Path
+from typing import Iterator
+
+from pipeline.texts import NAMED_SUFFIX, PAPER_MAP_VARIANTS
 
 KIND_TAG = "cogmap.kind"
 STEP_TAG = "cogmap.step"
@@ -35,6 +44,7 @@ def step_run_tag(step: str) -> str:
 
 EPISODES_ARTIFACT = "episodes.jsonl"
 CURVE_METRIC = "curve_success_rate"
+CURVE_EPISODES_ARTIFACT = "curve"   # eval run: curve/step-<n>.jsonl, the episodes of each checkpoint
 CHECKPOINTS_ARTIFACT = "checkpoints"  # finetune run: checkpoints/step-<n>/ loadable model dirs (Figure 3)
 
 # Per-episode record fields (eval's episodes.jsonl). Optimal-setting-only fields are null in reachable.
@@ -46,6 +56,8 @@ EPISODE_FIELDS = (
     "n_moves",          # moves taken (reachable) or planned (optimal)
     "moves",            # list of move words
     "parsed", "valid", "reaches_goal", "map_exact", "map_first_error",  # optimal setting, graded
+    "first_wrong_line", # optimal setting: map_errors.ErrorSite of the first wrong line, null when all are right
+    "answers",          # the model's raw answers: one (optimal) or one per turn (reachable)
     "error",            # null, or why this single episode could not run (e.g. prompt longer than context)
 )
 
@@ -67,12 +79,12 @@ PAPER_ROWS = {
     "cot": "CoT",
     "dfs": "DFS exploration",
 }
+# Beyond the paper: the same rows with each expanded state named.
+PAPER_ROWS |= {name + NAMED_SUFFIX: f"{PAPER_ROWS[name]}, states named (not in the paper)" for name in PAPER_MAP_VARIANTS}
 
 
 def default_tracking_uri(root: str = "outputs") -> str:
     """An absolute SQLite URI under ``root`` (a relative URI or ./mlruns would follow the working directory)."""
-    from pathlib import Path
-
     return f"sqlite:///{(Path(root).resolve() / 'mlflow.db').as_posix()}"
 
 
@@ -80,10 +92,9 @@ class StoreError(RuntimeError):
     """A tracking store that cannot be used: unreachable server, unwritable folder, deleted experiment."""
 
 
-def _check_writable(folder: "str | Path", what: str) -> None:
+def _check_writable(folder: str | Path, what: str) -> None:
     """Create ``folder`` if needed and write a probe file in it; StoreError naming it if that fails."""
     import tempfile
-    from pathlib import Path
 
     path = Path(folder).expanduser()
     try:
@@ -95,7 +106,7 @@ def _check_writable(folder: "str | Path", what: str) -> None:
                          f"choose a tracking.root you can write to") from None
 
 
-def check_store(tracking_uri: str, artifact_root: "str | None" = None, timeout: float = 5.0) -> None:
+def check_store(tracking_uri: str, artifact_root: str | None = None, timeout: float = 5.0) -> None:
     """Fail fast on a store that cannot work, before any job starts.
 
     A sqlite store's folder (and the artifact root) must be writable; an http(s) server must answer
@@ -103,14 +114,13 @@ def check_store(tracking_uri: str, artifact_root: "str | None" = None, timeout: 
     """
     import urllib.error
     import urllib.request
-    from pathlib import Path
     from urllib.parse import urlparse
 
     scheme = urlparse(tracking_uri).scheme
     if scheme == "sqlite":
-        database = tracking_uri[len("sqlite:///"):] if tracking_uri.startswith("sqlite:///") else ""
-        if database and database != ":memory:":
-            _check_writable(Path(database).parent, "the MLflow store's folder")
+        database = _sqlite_path(tracking_uri)
+        if database is not None:
+            _check_writable(database.parent, "the MLflow store's folder")
     elif scheme in ("http", "https"):
         try:
             urllib.request.urlopen(f"{tracking_uri.rstrip('/')}/health", timeout=timeout).close()
@@ -129,14 +139,40 @@ def check_store(tracking_uri: str, artifact_root: "str | None" = None, timeout: 
 def ensure_experiment(tracking_uri: str, name: str, artifact_root: str) -> str:
     """Create the store and the experiment once (with artifacts under ``artifact_root``); return its id.
 
-    Called before any job starts: parallel jobs opening a new, empty SQLite store at once crash. A store
-    that cannot work (see `check_store`) or an experiment that was deleted raises StoreError first.
+    Processes opening a new, empty SQLite store at once crash in MLflow's migrations ("table ... already
+    exists"), so a SQLite store is created under a file lock beside the database: two commands started
+    together on a new store both go on. A store that cannot work (see `check_store`) or an experiment that
+    was deleted raises StoreError first. The experiment is tagged as model training, so MLflow's UI shows
+    its runs rather than its GenAI pages.
     """
-    from pathlib import Path
+    check_store(tracking_uri, artifact_root)
+    database = _sqlite_path(tracking_uri)
+    with file_lock(Path(str(database) + ".lock")) if database else nullcontext():
+        return _ensure_experiment(tracking_uri, name, artifact_root)
 
+
+def _sqlite_path(tracking_uri: str) -> Path | None:
+    if not tracking_uri.startswith("sqlite:///"):
+        return None
+    database = tracking_uri[len("sqlite:///"):]
+    return Path(database) if database and database != ":memory:" else None
+
+
+@contextmanager
+def file_lock(path: Path) -> Iterator[None]:
+    """An exclusive advisory lock, released by the kernel even if the holder is killed."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "a") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def _ensure_experiment(tracking_uri: str, name: str, artifact_root: str) -> str:
     import mlflow
 
-    check_store(tracking_uri, artifact_root)
     mlflow.set_tracking_uri(tracking_uri)
     experiment = mlflow.get_experiment_by_name(name)
     if experiment is not None:
@@ -145,7 +181,23 @@ def ensure_experiment(tracking_uri: str, name: str, artifact_root: str) -> str:
                 f"experiment {name!r} in {tracking_uri} is deleted; restore it (`mlflow experiments restore "
                 f"--experiment-id {experiment.experiment_id}`) or choose another tracking.experiment"
             )
+        if experiment.tags.get(EXPERIMENT_KIND_TAG) != EXPERIMENT_KIND:
+            mlflow.MlflowClient(tracking_uri).set_experiment_tag(experiment.experiment_id, EXPERIMENT_KIND_TAG,
+                                                                 EXPERIMENT_KIND)
         return experiment.experiment_id
     location = Path(artifact_root).resolve()
     location.mkdir(parents=True, exist_ok=True)
-    return mlflow.create_experiment(name, artifact_location=location.as_uri())
+    return mlflow.create_experiment(name, artifact_location=location.as_uri(),
+                                    tags={EXPERIMENT_KIND_TAG: EXPERIMENT_KIND})
+
+
+# MLflow's UI classifies an experiment by this tag, and opens a run or experiment page on its model-training
+# view (runs, models, datasets) when the URL says workflowType=machine_learning.
+EXPERIMENT_KIND_TAG, EXPERIMENT_KIND = "mlflow.experimentKind", "custom_model_development"
+UI_VIEW = "workflowType=machine_learning"
+
+
+def ui_path(experiment_id: str, run_id: str | None = None) -> str:
+    """The path (after the UI's address) of an experiment or run page in MLflow's model-training view."""
+    run = f"/runs/{run_id}" if run_id else "/runs"
+    return f"#/experiments/{experiment_id}{run}?{UI_VIEW}"

@@ -11,6 +11,7 @@ from transformers import DataCollatorWithFlattening, Trainer, TrainerCallback
 from pipeline.chat import IGNORE_INDEX, WORD_LEVEL_FORMAT
 from pipeline.config import PYTHON_H, cxx_compiler
 from pipeline.finetune import (
+    cpu_has_bf16,
     RESULT_FILE,
     LengthGroupedBatches,
     RightPadCollator,
@@ -174,9 +175,23 @@ def test_precision_and_compile_settings_reach_the_trainer(tmp_path):
     with _dynamo_environment():
         tuned = _training_arguments(TrainSettings(bf16=True, torch_compile="full", **QUIET), tmp_path)
         regional = _training_arguments(TrainSettings(torch_compile="regional", **QUIET), tmp_path)
-    assert tuned.bf16 and tuned.torch_compile
+    assert tuned.bf16 == (torch.cuda.is_available() or cpu_has_bf16()) and tuned.torch_compile
     assert not regional.torch_compile  # compiled in place by finetune, not by Trainer
-    assert tuned.use_cpu == (not torch.cuda.is_available())  # bf16 without a GPU is CPU autocast
+    assert tuned.use_cpu == (tuned.bf16 and not torch.cuda.is_available())  # bf16 without a GPU is CPU autocast
+
+
+def test_bf16_on_a_cpu_without_bf16_hardware_falls_back_to_fp32(tmp_path, monkeypatch, caplog):
+    amd_avx2 = "processor\t: 0\nflags\t\t: fpu sse2 avx avx2 fma\n"
+    zen5 = "flags\t\t: fpu avx2 avx512f avx512_bf16 avx512_vnni\n"
+    xeon = "flags\t\t: fpu avx2 avx512f amx_bf16 amx_tile\n"
+    assert (cpu_has_bf16(amd_avx2), cpu_has_bf16(zen5), cpu_has_bf16(xeon)) == (False, True, True)
+    assert cpu_has_bf16("Features\t: fp asimd bf16\n")  # no x86 flags line: trusted
+    monkeypatch.setattr("pipeline.finetune.torch.cuda.is_available", lambda: False)
+    monkeypatch.setattr("pipeline.finetune.cpu_has_bf16", lambda: False)
+    with caplog.at_level("WARNING", logger="pipeline.finetune"):
+        arguments = _training_arguments(TrainSettings(bf16=True, **QUIET), tmp_path)
+    assert not arguments.bf16 and not arguments.use_cpu
+    assert "no bf16 matmul hardware" in caplog.text
 
 
 @pytest.mark.parametrize("scope, backend", [("none", "NO"), ("regional", "NO"), ("full", "INDUCTOR")])

@@ -38,7 +38,7 @@ from pipeline.steps import ARTIFACTS_TAG, get_or_run
 from pipeline.tracking import (
     EPISODES_ARTIFACT, JOB_KIND, KIND_TAG, STEP_KIND, STEP_TAG, StoreError, ensure_experiment, step_run_tag,
 )
-from pipeline.world import WorldError
+from pipeline.world import WorldError, load_worlds
 
 ROOT = Path(__file__).resolve().parents[1]
 TOY = ["data=toy", "model=toy", "train=toy", "eval=toy"]
@@ -270,13 +270,14 @@ def _with(**changes):
     ("binary", b"\xff\xfe\x00garbage\n", r"binary.jsonl:2: not UTF-8"),
     ("schema", {"world": 1}, r"schema.jsonl:2: expected an object with key 'question'"),
 ])
-def test_a_bad_world_file_is_refused_naming_file_line_and_rule(store, name, bad_line, message):
-    path = _world_file(store, f"{name}.jsonl", EXAMPLE_WORLD, bad_line)
-    cfg = _cfg(store, f"data.test_file={path}", "data.n_test=2")
-    with pytest.raises(WorldError, match=message):
+def test_a_bad_world_file_is_refused_naming_file_line_and_rule(tmp_path, name, bad_line, message):
+    path = _world_file(tmp_path, f"{name}.jsonl", EXAMPLE_WORLD, bad_line)
+    cfg = _cfg(tmp_path, f"data.test_file={path}", "data.n_test=2")
+    with pytest.raises(ConfigError, match=f"data.test_file=.*{message}"):
         run_job(cfg)
-    statuses = [r.info.status for r in _runs(store)]
-    assert "FAILED" in statuses and set(statuses) <= {"FAILED", "FINISHED"}  # nothing left looking alive
+    assert not (tmp_path / "mlflow.db").exists()  # refused at validation, before any work
+    with pytest.raises(WorldError, match=message):  # and the loader itself names the same line and rule
+        load_worlds(path)
 
 
 @pytest.mark.parametrize("overrides, error, message", [
@@ -370,7 +371,32 @@ def test_the_command_line_names_a_bad_value_and_what_is_allowed(tmp_path, overri
     output = done.stdout + done.stderr
     assert done.returncode != 0
     assert override.split("=")[1] in output and allowed in output
+    assert "Traceback" not in output  # a message for people, not a crash
     assert not (tmp_path / "mlflow.db").exists()  # refused before any work
+
+
+def test_a_bad_value_is_one_line_and_hydra_full_error_shows_the_trace(tmp_path):
+    done = _run_cli(tmp_path, "data=toy", "data.train_size_x=[5,3]", timeout=120)
+    assert done.returncode == 2 and done.stderr.strip().splitlines() == [
+        "error: data.train_size_x=[5, 3]: need 2 <= min <= max <= data.frame (5)"]
+    traced = subprocess.run(_command(tmp_path, "data=toy", "data.train_size_x=[5,3]"), cwd=tmp_path,
+                            capture_output=True, text=True, timeout=120, env={**os.environ, "HYDRA_FULL_ERROR": "1"})
+    assert traced.returncode != 0 and "Traceback" in traced.stderr and "ConfigError" in traced.stderr
+
+
+@pytest.mark.slow
+def test_two_commands_started_together_on_a_new_store_both_finish_and_share_their_steps(tmp_path):
+    overrides = [*TOY, "train.max_steps=2", "eval.n_worlds=2", "eval.max_new_tokens=16", "hydra/job_logging=none"]
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    processes = [subprocess.Popen(_command(tmp_path, *overrides), cwd=tmp_path, stdout=subprocess.PIPE,
+                                  stderr=subprocess.STDOUT, text=True, env=env) for _ in range(2)]
+    outputs = [process.communicate(timeout=600)[0] for process in processes]
+    assert [process.returncode for process in processes] == [0, 0], "\n".join(o[-2000:] for o in outputs)
+    assert all("Traceback" not in output for output in outputs)
+    jobs = _runs(tmp_path, JOB_KIND)
+    assert [job.info.status for job in jobs] == ["FINISHED", "FINISHED"]
+    for step in ("data-build", "finetune", "eval"):
+        assert len(_step_runs(tmp_path, step)) == 1  # one ran it, the other reused it
 
 
 @pytest.mark.slow

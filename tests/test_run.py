@@ -52,12 +52,53 @@ def test_a_job_runs_its_steps_then_reuses_them(tmp_path):
     records = [json.loads(line) for line in open(mlflow.artifacts.download_artifacts(
         run_id=ids[0]["eval"], artifact_path=EPISODES_ARTIFACT, tracking_uri=cfg.tracking.uri))]
     assert [r["world_index"] for r in records] == [0, 1, 2] and set(records[0]) == set(EPISODE_FIELDS)
+    assert all(len(r["answers"]) == 1 and isinstance(r["answers"][0], str) for r in records)
+    client = mlflow.MlflowClient(cfg.tracking.uri)
+    contexts = {step: sorted(tag.value for entry in client.get_run(ids[0][step]).inputs.dataset_inputs
+                             for tag in entry.tags if tag.key == "mlflow.data.context")
+                for step in ("data-build", "finetune", "eval")}
+    assert contexts == {"data-build": ["test", "train"], "finetune": ["training"], "eval": ["evaluation"]}
+    train_input = client.get_run(ids[0]["finetune"]).inputs.dataset_inputs[0].dataset
+    assert train_input.name == "fwd-no-all-optimal-train" and "conversations/train.jsonl" in train_input.source
+    experiment = client.get_experiment_by_name(cfg.tracking.experiment)
+    assert experiment.tags["mlflow.experimentKind"] == "custom_model_development"
+
+
+@pytest.mark.slow
+def test_the_finetuned_model_is_an_mlflow_model_and_inspect_shows_its_answers(tmp_path):
+    import mlflow.transformers
+
+    from pipeline.inspect import inspect_run, main as inspect_main
+
+    cfg = _cfg(tmp_path, "variant=marking-deadend", "eval.n_worlds=2")
+    run_job(cfg)
+    job = _job_runs(cfg)[0]
+    finetune_id = job.data.tags[step_run_tag("finetune")]
+    models = mlflow.search_logged_models(experiment_ids=[job.info.experiment_id], output_format="list",
+                                         filter_string=f"source_run_id = '{finetune_id}'")
+    assert len(models) == 1
+    pipe = mlflow.transformers.load_model(f"models:/{models[0].model_id}")
+    saved = load_file(str(next(Path(mlflow.artifacts.download_artifacts(
+        run_id=finetune_id, artifact_path="model", tracking_uri=cfg.tracking.uri)).glob("*.safetensors"))))
+    weights = pipe.model.state_dict()
+    assert all(torch.equal(weights[name], tensor) for name, tensor in saved.items() if name in weights)
+    text = inspect_run(cfg.tracking.uri, job.info.run_id, world=1)
+    assert "world 1 (" in text and "--- task prompt\nGrid is from" in text
+    assert "answer (" in text and "golden" in text and "Thought:" in text
+    eval_id = job.data.tags[step_run_tag("eval")]
+    assert inspect_run(cfg.tracking.uri, eval_id, world=1) == text
+    assert inspect_main([eval_id, "--world", "7", "--tracking-uri", cfg.tracking.uri]) == 2
 
 
 @pytest.mark.slow
 def test_reachable_job_records_outcomes(tmp_path):
-    metrics = run_job(_cfg(tmp_path, "variant=dfs", "eval.max_steps=5"))
+    cfg = _cfg(tmp_path, "variant=dfs", "eval.max_steps=5")
+    metrics = run_job(cfg)
     assert metrics["n_episodes"] == 3
+    eval_id = _job_runs(cfg)[0].data.tags[step_run_tag("eval")]
+    records = [json.loads(line) for line in open(mlflow.artifacts.download_artifacts(
+        run_id=eval_id, artifact_path=EPISODES_ARTIFACT, tracking_uri=cfg.tracking.uri))]
+    assert all(len(r["answers"]) >= 1 and len(r["answers"]) >= r["n_moves"] for r in records)
     assert abs(sum(metrics.get(k, 0.0) for k in ("success_rate", "rate_deadend", "rate_max_step", "rate_invalid",
                                                    "rate_error")) - 1.0) < 1e-9
 
