@@ -12,6 +12,9 @@ conversations through `pipeline.finetune.finetune`, with the default job's batch
   which runs matmuls on the CPU's AMX/AVX512-BF16 units and keeps fp32 master weights), eager.
 - ``default``: exactly what ``--train`` sets, its ``torch_compile`` scope included (the CPU default:
   ``regional``). Only when that scope is not ``none``.
+- ``default, paper prompt``: the same on the same worlds with the paper's instruction turns, when ``--model``
+  prompts with the task turn alone (``prompt: task``, the CPU default): tokens/s barely move, conversations/s
+  is what the switch buys.
 
 Each run prints two rates: over all its steps (compiling included), and in steady state: the median rate of
 the optimizer steps themselves (forward, backward and update: no batch loading or logging) after the first
@@ -107,17 +110,17 @@ class StepClock(TrainerCallback):
         return statistics.median(n / t for t, n in self.steps[skip:])
 
 
-def cpu_conversations(n: int, seed: int) -> list[list[dict]]:
+def cpu_conversations(n: int, seed: int, prompt: str = "task") -> list[list[dict]]:
     """What the default job trains on (conf/data/cpu.yaml sizes; BWD marking-deadend, optimal setting)."""
     data = OmegaConf.load(ROOT / "conf" / "data" / "cpu.yaml")
     gen = GeneratorConfig(size_x=tuple(data.train_size_x), size_y=tuple(data.train_size_y), frame=data.frame,
                           p_pit=tuple(data.p_pit))
-    return [conversation(w, "bwd", "marking-deadend", "optimal") for w in generate_worlds(n, seed, gen)]
+    return [conversation(w, "bwd", "marking-deadend", "optimal", prompt=prompt) for w in generate_worlds(n, seed, gen)]
 
 
-def paper_conversations(n: int, seed: int, low: int = 300, high: int = 1500) -> list[list[dict]]:
+def paper_conversations(n: int, seed: int, prompt: str = "task", low: int = 300, high: int = 1500) -> list[list[dict]]:
     """``n`` FWD marking-deadend conversations of paper-size worlds whose word-level length is in [low, high]."""
-    texts = [conversation(w, "fwd", "marking-deadend", "optimal") for w in generate_worlds(3 * n, seed)]
+    texts = [conversation(w, "fwd", "marking-deadend", "optimal", prompt=prompt) for w in generate_worlds(3 * n, seed)]
     tokenizer = build_word_tokenizer(t["value"] for c in texts for t in c)
     kept = [c for c in texts if low <= len(encode_conversation(tokenizer, WORD_LEVEL_FORMAT, c)[0]) <= high]
     if len(kept) < n:
@@ -135,7 +138,8 @@ def main() -> None:
     parser.add_argument("--model", default=str(ROOT / "conf" / "model" / "tiny.yaml"), help="a scratch model yaml")
     parser.add_argument("--train", default=str(ROOT / "conf" / "train" / "cpu.yaml"), help="a train yaml")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--only", choices=("padded-fp32", "packed-fp32", "packed-precision", "default"),
+    parser.add_argument("--only", choices=("padded-fp32", "packed-fp32", "packed-precision", "default",
+                                           "default, paper prompt"),
                         action="append", help="run only these (repeatable)")
     args = parser.parse_args()
     if not 0 <= args.skip < args.steps:
@@ -144,20 +148,26 @@ def main() -> None:
 
     model_cfg, train_cfg = OmegaConf.load(args.model), OmegaConf.load(args.train)
     make = cpu_conversations if args.data == "cpu" else paper_conversations
-    conversations = make(args.conversations, args.seed)
-    tokenizer = build_word_tokenizer(t["value"] for c in conversations for t in c)
+    prompt = str(model_cfg.get("prompt", "paper"))
+    sets = {prompt: make(args.conversations, args.seed, prompt)}
+    if prompt != "paper":  # the same worlds with the paper's instruction turns: what the prompt switch saves
+        sets["paper"] = make(args.conversations, args.seed, "paper")
+    conversations = sets[prompt]
+    tokenizer = build_word_tokenizer(t["value"] for c in [*sets.get("paper", []), *conversations] for t in c)
     lengths = [len(encode_conversation(tokenizer, WORD_LEVEL_FORMAT, c)[0]) for c in conversations]
     model_kwargs = dict(hidden_size=model_cfg.hidden_size, num_layers=model_cfg.num_layers,
                         num_heads=model_cfg.num_heads, intermediate_size=model_cfg.intermediate_size,
                         attn_implementation=model_cfg.get("attn_implementation", "sdpa"),
-                        max_length=max(lengths), seed=args.seed)
+                        max_length=max(len(encode_conversation(tokenizer, WORD_LEVEL_FORMAT, c)[0])
+                                       for texts in sets.values() for c in texts), seed=args.seed)
     probe = build_scratch_model(tokenizer, **model_kwargs)
     flops_per_real_token = training_flops(probe, lengths) / sum(lengths)
     precision = "bf16" if train_cfg.bf16 else "fp32"
     scope = str(train_cfg.get("torch_compile", "none"))
     print(device_line(args.threads))
-    print(f"data ({args.data}): {len(conversations)} conversations, tokens min {min(lengths)} median "
-          f"{statistics.median(lengths):.0f} max {max(lengths)}; vocab {len(tokenizer)}")
+    print(f"data ({args.data}, prompt {prompt}): {len(conversations)} conversations, tokens min {min(lengths)} "
+          f"median {statistics.median(lengths):.0f} mean {statistics.fmean(lengths):.0f} max {max(lengths)}; vocab "
+          f"{len(tokenizer)}")
     print(f"model ({Path(args.model).name}): {count_parameters(probe) / 1e6:.3f}M parameters, hidden "
           f"{model_cfg.hidden_size} x {model_cfg.num_layers} layers, {model_cfg.num_heads} heads of "
           f"{model_cfg.hidden_size // model_cfg.num_heads}, attention {model_kwargs['attn_implementation']}; "
@@ -168,20 +178,28 @@ def main() -> None:
 
     measured = [peaks(args.threads)]
     print("matmul peak before: " + ", ".join(f"{k} {v:.1f} GFLOP/s" for k, v in measured[0].items()))
-    # name: (packing, bf16, torch_compile)
-    runs = {"padded-fp32": (False, False, "none"), "packed-fp32": (True, False, "none"),
-            f"packed-{precision}": (True, bool(train_cfg.bf16), "none")}
+    # name: (packing, bf16, torch_compile, prompt)
+    runs = {"padded-fp32": (False, False, "none", prompt), "packed-fp32": (True, False, "none", prompt),
+            f"packed-{precision}": (True, bool(train_cfg.bf16), "none", prompt)}
+    default = f"default ({precision}, {scope} compile)" if scope != "none" else f"packed-{precision}"
     if scope != "none":
-        runs[f"default ({precision}, {scope} compile)"] = (True, bool(train_cfg.bf16), scope)
-    selected = {"packed-precision": f"packed-{precision}", "default": next(reversed(runs))}
+        runs[default] = (True, bool(train_cfg.bf16), scope, prompt)
+    if "paper" in sets and prompt != "paper":
+        runs["default, paper prompt"] = (*runs[default][:3], "paper")
+    selected = {"packed-precision": f"packed-{precision}", "default": default}
     wanted = {selected.get(name, name) for name in args.only or runs}
     rates: dict[str, tuple[float, float]] = {}  # name: (overall, steady) real tokens/s
-    for name, (packing, bf16, compile_scope) in runs.items():
+    per_token: dict[str, float] = {}  # name: useful training FLOPs per real token of its conversations
+    for name, (packing, bf16, compile_scope, run_prompt) in runs.items():
         if name not in wanted:
             continue
+        texts = sets[run_prompt]
+        run_lengths = [len(encode_conversation(tokenizer, WORD_LEVEL_FORMAT, c)[0]) for c in texts]
+        per_token[name] = training_flops(probe, run_lengths) / sum(run_lengths)
+        mean_tokens = statistics.fmean(run_lengths)
         settings = TrainSettings(
             max_steps=args.steps, per_device_batch_size=train_cfg.per_device_batch_size,
-            learning_rate=train_cfg.learning_rate, packing=packing, bf16=bf16, max_length=max(lengths),
+            learning_rate=train_cfg.learning_rate, packing=packing, bf16=bf16, max_length=max(run_lengths),
             pad_to_multiple_of=train_cfg.pad_to_multiple_of,
             report_to=(), logging_steps=args.steps, save_steps=10 * args.steps, torch_threads=args.threads,
             seed=args.seed, torch_compile=compile_scope,
@@ -189,14 +207,15 @@ def main() -> None:
         clock = StepClock()
         with tempfile.TemporaryDirectory() as out:
             model = build_scratch_model(tokenizer, **model_kwargs)
-            result = finetune(model, tokenizer, WORD_LEVEL_FORMAT, conversations, settings, out, callbacks=[clock])
+            result = finetune(model, tokenizer, WORD_LEVEL_FORMAT, texts, settings, out, callbacks=[clock])
         steady = clock.steady(args.skip)
         rates[name] = (result.tokens_per_second, steady)
         # Steady time for all the steps, against the time they took: what compiling (or warming up) cost.
         tokens = sum(n for _, n in clock.steps)
         warmup = sum(t for t, _ in clock.steps) - tokens / steady
         print(f"{name}: {result.tokens_per_second:.0f} real tokens/s over all steps, {steady:.0f} in steady "
-              f"state ({steady * flops_per_real_token / 1e9:.1f} GFLOP/s useful); real-token fraction "
+              f"state ({steady * per_token[name] / 1e9:.1f} GFLOP/s useful; {steady / mean_tokens:.1f} "
+              f"conversations/s of {mean_tokens:.0f} tokens); real-token fraction "
               f"{result.real_token_fraction:.3f}; {result.train_seconds:.1f} s for {result.global_step} steps, "
               f"{warmup:.1f} s of them over the steady rate; final loss {result.final_loss:.3f}")
     measured.append(peaks(args.threads))
@@ -210,7 +229,7 @@ def main() -> None:
                 print(f"{name} / padded-fp32 tokens/s: {overall / base_all:.2f}x over all steps, "
                       f"{steady / base_steady:.2f}x in steady state")
     for name, (overall, steady) in rates.items():
-        shares = [f"{100 * rate * flops_per_real_token / 1e9 / peak[kind]:.0f}%" for rate in (steady, overall)
+        shares = [f"{100 * rate * per_token[name] / 1e9 / peak[kind]:.0f}%" for rate in (steady, overall)
                   for kind in ("fp32", "bf16")]
         print(f"{name}: steady state {shares[0]} of the fp32 peak ({shares[1]} of bf16); over all steps "
               f"{shares[2]} ({shares[3]})")
