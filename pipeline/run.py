@@ -302,7 +302,7 @@ def run_job(cfg: DictConfig) -> dict | None:
         f"(interp {results.get('success_rate_interp', float('nan')):.3f}, "
         f"extrap {results.get('success_rate_extrap', float('nan')):.3f}) over {int(results.get('n_episodes', 0))} "
         f"worlds | reused: {', '.join(reused) or 'nothing'} | job run {job.info.run_id}\n"
-        f"[job] in `mlflow ui` (README): {UI_ADDRESS}/{ui_path(experiment_id, job.info.run_id)}",
+        f"      in `mlflow ui` (README): {UI_ADDRESS}/{ui_path(experiment_id, job.info.run_id)}",
         flush=True,
     )
     return results

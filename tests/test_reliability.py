@@ -282,7 +282,7 @@ def test_a_bad_world_file_is_refused_naming_file_line_and_rule(tmp_path, name, b
 
 @pytest.mark.parametrize("overrides, error, message", [
     (["data.test_file=/no/such/worlds.jsonl"], ConfigError, r"data.test_file=./no/such/worlds.jsonl.: no such file"),
-    (["data.n_test=5"], ValueError, r"data.n_test=5 but .*holds only 1 worlds; allowed: 1..1"),
+    (["data.n_test=5"], ConfigError, r"data.n_test=5 but data.test_file=.* holds 1 worlds; allowed: 1..1"),
     (["eval.n_worlds=9"], ConfigError, r"eval.n_worlds=9: .*allowed: 1..8"),
     (["data.train_size_x=[0,3]"], ConfigError, r"data.train_size_x=\[0, 3\]: need 2 <= min"),
     (["data.n_train=-1"], ConfigError, r"data.n_train=-1: must be at least 1"),
@@ -418,9 +418,9 @@ def test_a_sweep_with_a_bad_job_finishes_the_others_and_keeps_their_results(tmp_
 # ---------------------------------------------------------------------------------------------------- 4. determinism
 @pytest.mark.slow
 def test_the_same_config_twice_gives_identical_hashes_records_and_metrics(tmp_path):
-    # model.max_length=238: the larger test worlds' prompts (240-246 tokens of 230-246) no longer fit the context, so
-    # this also shows a too-large test world becoming a per-episode error while the job finishes.
-    overrides = ["train.max_steps=2", "eval.max_new_tokens=32", "model.max_length=238"]
+    # model.max_length=58: the larger test worlds' prompts (58-63 tokens of 47-63, task prompt) no longer fit the
+    # context, so this also shows a too-large test world becoming a per-episode error while the job finishes.
+    overrides = ["train.max_steps=2", "eval.max_new_tokens=32", "model.max_length=58"]
     results = []
     for name in ("a", "b"):
         root = tmp_path / name
@@ -439,7 +439,7 @@ def test_the_same_config_twice_gives_identical_hashes_records_and_metrics(tmp_pa
     episodes = results[0]["episodes"]
     errors = [r for r in episodes if r["outcome"] == "error"]
     assert errors and len(errors) < len(episodes)
-    assert all("context of 238" in r["error"] and r["success"] is False for r in errors)
+    assert all("context of 58" in r["error"] and r["success"] is False for r in errors)
     assert results[0]["metrics"]["rate_error"] == len(errors) / len(episodes)
 
 
