@@ -248,11 +248,6 @@ def _seed_key(seed: str) -> tuple[int, float | str]:
         return (1, seed)
 
 
-def read_episodes(client, run_id: str, scratch: Path) -> pd.DataFrame:
-    """The eval run's ``episodes.jsonl`` as a DataFrame with every column of ``EPISODE_FIELDS``."""
-    return episodes_frame(read_records(client, run_id, scratch))
-
-
 def read_records(client, run_id: str, scratch: Path) -> list[dict]:
     """The eval run's ``episodes.jsonl`` records as written."""
     target = scratch / run_id
