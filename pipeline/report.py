@@ -30,7 +30,6 @@ from hydra.experimental.callback import Callback
 from pipeline import texts
 from pipeline.data_build import TEST_WORLDS
 from pipeline.map_errors import STEP_BUCKETS, category, step_bucket
-from pipeline.report_figures import gallery_picks
 from pipeline.world import load_worlds
 from pipeline.stats import mcnemar, seeded_rate
 from pipeline.tracking import (
@@ -312,6 +311,10 @@ def load_store(tracking_uri: str, experiment: str) -> StoreData:
     picks: dict[str, list[dict]] = {}
     galleries: dict[str, list[tuple]] = {}
     test_worlds: dict[str, list] = {}
+    curve_cache: dict[str, pd.DataFrame] = {}
+    # matplotlib comes with report_figures: imported here, not when a job loads the report callback.
+    from pipeline.report_figures import gallery_picks
+
     with tempfile.TemporaryDirectory() as scratch:
         for job in jobs:
             cell = {"mode": job.mode, "direction": job.direction, "variant": job.variant,
@@ -347,12 +350,14 @@ def load_store(tracking_uri: str, experiment: str) -> StoreData:
                 curve = _history(client, job.eval_run_id, CURVE_METRIC)
                 if len(curve):
                     curves.append(curve.assign(**cell, job_run_id=job.run_id))
-                    try:
-                        checkpoints = read_curve_episodes(client, job.eval_run_id, Path(scratch))
-                    except Exception as err:  # noqa: BLE001 (older runs have no curve episodes)
-                        notes.append(f"eval run {job.eval_run_id[:8]} ({job.label}): cannot read its checkpoint "
-                                     f"episodes: {err}")
-                        checkpoints = pd.DataFrame()
+                    if job.eval_run_id not in curve_cache:  # a reused eval run is read once
+                        try:
+                            curve_cache[job.eval_run_id] = read_curve_episodes(client, job.eval_run_id, Path(scratch))
+                        except Exception as err:  # noqa: BLE001 (older runs have no curve episodes)
+                            notes.append(f"eval run {job.eval_run_id[:8]} ({job.label}): cannot read its "
+                                         f"checkpoint episodes: {err}")
+                            curve_cache[job.eval_run_id] = pd.DataFrame()
+                    checkpoints = curve_cache[job.eval_run_id]
                     if len(checkpoints):
                         curve_episodes.append(checkpoints.assign(**cell, job_run_id=job.run_id))
             if job.finetune_run_id:
