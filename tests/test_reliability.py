@@ -44,7 +44,8 @@ ROOT = Path(__file__).resolve().parents[1]
 TOY = ["data=toy", "model=toy", "train=toy", "eval=toy"]
 # Small enough to be quick, big enough to kill in the middle: 8 optimizer steps with a checkpoint every 4,
 # and reachable episodes recorded one by one, two at a time.
-KILLABLE = [*TOY, "mode=reachable", "variant=no-all", "train.max_steps=8", "train.save_steps=4",
+# The paper's longer prompt keeps a step slow enough that the kill lands before the next logged step.
+KILLABLE = [*TOY, "model.prompt=paper", "mode=reachable", "variant=no-all", "train.max_steps=8", "train.save_steps=4",
             "train.logging_steps=2", "eval.batch_size=2", "eval.max_new_tokens=48", "eval.max_steps=4",
             "hydra/job_logging=none"]
 EXAMPLE_WORLD = {"question": {"world_size_x": 4, "world_size_y": 3, "wall": [[1, 1], [2, 2]], "pit": [[3, 0]],
