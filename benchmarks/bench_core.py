@@ -11,9 +11,9 @@ import resource
 import time
 from functools import partial
 
-from pipeline.generate import GeneratorConfig, generate_worlds, world_stats
-from pipeline.texts import conversation
-from pipeline.world import World, load_worlds
+from pipeline.core.generation import GeneratorConfig, generate_worlds, world_stats
+from pipeline.core.texts import conversation
+from pipeline.core.world import World, load_worlds
 
 PAPER_TEST = "/work/shared/data/paper_test_3000.jsonl"
 TRAIN_CFG = GeneratorConfig(size_x=(2, 10), size_y=(2, 10))

@@ -18,11 +18,11 @@ import time
 import torch
 from transformers import LlamaConfig, LlamaForCausalLM
 
-from pipeline.chat import WORD_LEVEL_FORMAT, encode_prompt, turn_end_ids
-from pipeline.decode import HFDecoder
-from pipeline.generate import GeneratorConfig, generate_worlds
-from pipeline.texts import conversation, prompt_turns
-from pipeline.tokenizer import build_word_tokenizer
+from pipeline.lm.chat import WORD_LEVEL_FORMAT, encode_prompt, turn_end_ids
+from pipeline.lm.decoding.hf import HFDecoder
+from pipeline.core.generation import GeneratorConfig, generate_worlds
+from pipeline.core.texts import conversation, prompt_turns
+from pipeline.lm.tokenizer import build_word_tokenizer
 
 
 def random_free_move(text: str, observation: str) -> str | None:

@@ -4,7 +4,7 @@
                                      [--model conf/model/tiny.yaml] [--train conf/train/cpu.yaml]
 
 Every run trains the same scratch model (shape from ``--model``, the CPU default unless told) on the same
-conversations through `pipeline.finetune.finetune`, with the default job's batch size and learning rate:
+conversations through `pipeline.lm.training.trainer.finetune`, with the default job's batch size and learning rate:
 
 - ``padded fp32``: the plain Trainer: random batches padded to the longest, an attention mask, fp32, eager.
 - ``packed fp32``: our length-grouped batches (right-padded, no mask), fp32, eager.
@@ -45,12 +45,12 @@ import transformers
 from omegaconf import OmegaConf
 from transformers import TrainerCallback
 
-from pipeline.chat import WORD_LEVEL_FORMAT, encode_conversation
-from pipeline.finetune import TrainSettings, finetune
-from pipeline.generate import GeneratorConfig, generate_worlds
-from pipeline.modeling import build_scratch_model, count_parameters, training_flops
-from pipeline.texts import conversation
-from pipeline.tokenizer import build_word_tokenizer
+from pipeline.lm.chat import WORD_LEVEL_FORMAT, encode_conversation
+from pipeline.lm.training.trainer import TrainSettings, finetune
+from pipeline.core.generation import GeneratorConfig, generate_worlds
+from pipeline.lm.models import build_scratch_model, count_parameters, training_flops
+from pipeline.core.texts import conversation
+from pipeline.lm.tokenizer import build_word_tokenizer
 
 ROOT = Path(__file__).resolve().parents[1]
 

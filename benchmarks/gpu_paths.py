@@ -35,7 +35,7 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
-from pipeline.chat import WORD_LEVEL_FORMAT
+from pipeline.lm.chat import WORD_LEVEL_FORMAT
 
 ROOT = Path(__file__).resolve().parents[1]
 CHECKS = ("env", "job-default", "job-hf-bf16", "job-fsdp", "fsdp-resume", "vllm", "tests", "bench-train",
@@ -53,10 +53,10 @@ print("gpus:", [torch.cuda.get_device_name(i) for i in range(torch.cuda.device_c
 
 def make_local_model(target: Path, hidden: int = 512, layers: int = 8, heads: int = 8) -> Path:
     """A saved Llama (safetensors, word-level tokenizer) standing in for a downloaded base model."""
-    from pipeline.generate import GeneratorConfig, generate_worlds
-    from pipeline.modeling import build_scratch_model
-    from pipeline.texts import MAP_VARIANTS, conversation
-    from pipeline.tokenizer import build_word_tokenizer
+    from pipeline.core.generation import GeneratorConfig, generate_worlds
+    from pipeline.lm.models import build_scratch_model
+    from pipeline.core.texts import MAP_VARIANTS, conversation
+    from pipeline.lm.tokenizer import build_word_tokenizer
 
     worlds = generate_worlds(64, seed="gpu-paths", cfg=GeneratorConfig(size_x=(2, 6), size_y=(2, 6)))
     texts = [turn["value"] for world in worlds for direction in ("fwd", "bwd") for variant in MAP_VARIANTS

@@ -10,8 +10,8 @@ import pytest
 from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
 
-from pipeline.generate import GeneratorConfig, sample_world
-from pipeline.world import World, load_worlds
+from pipeline.core.generation import GeneratorConfig, sample_world
+from pipeline.core.world import World, load_worlds
 
 
 def _paper_test() -> Path:

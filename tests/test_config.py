@@ -7,8 +7,8 @@ from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from omegaconf import OmegaConf
 
-from pipeline.config import ConfigError, UndefinedCell, register_configs, validate, variant_name
-from pipeline.texts import PAPER_MAP_VARIANTS, PAPER_VARIANTS
+from pipeline.workflow.config import ConfigError, UndefinedCell, register_configs, validate, variant_name
+from pipeline.core.texts import PAPER_MAP_VARIANTS, PAPER_VARIANTS
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF, SWEEPS = ROOT / "conf", ROOT / "sweeps"
@@ -104,16 +104,16 @@ def test_bad_values_fail_before_any_work(override, message):
 
 def test_compiling_on_a_cpu_without_a_cxx_compiler_is_refused_naming_the_way_out(monkeypatch):
     monkeypatch.setenv("CXX", "no-such-c++-compiler")
-    monkeypatch.setattr("pipeline.config._cuda_visible", lambda: False)
+    monkeypatch.setattr("pipeline.workflow.config._cuda_visible", lambda: False)
     with pytest.raises(ConfigError, match=r"train.torch_compile=regional.*'no-such-c\+\+-compiler'.*"
                                           r"train.torch_compile=none"):
         validate(_compose(["train.torch_compile=regional"]))
-    monkeypatch.setattr("pipeline.config.PYTHON_H", Path("/no/such/include/Python.h"))
+    monkeypatch.setattr("pipeline.workflow.config.PYTHON_H", Path("/no/such/include/Python.h"))
     with pytest.raises(ConfigError, match=r"compiler.*and the Python headers \(/no/such/include/Python.h"):
         validate(_compose(["train.torch_compile=full"]))
     assert validate(_compose(["train.torch_compile=none"])) == "marking-deadend"
     monkeypatch.setenv("CXX", "sh")  # any program on PATH, and headers that exist
-    monkeypatch.setattr("pipeline.config.PYTHON_H", Path(__file__))
+    monkeypatch.setattr("pipeline.workflow.config.PYTHON_H", Path(__file__))
     assert validate(_compose(["train.torch_compile=full"])) == "marking-deadend"
 
 
@@ -173,9 +173,9 @@ def test_train_config_schema_matches_train_settings():
     """The schema mirrors TrainSettings (kept apart so composing configs never imports torch)."""
     from dataclasses import fields
 
-    from pipeline.config import TrainConfig
-    from pipeline.finetune import TrainSettings
-    from pipeline.finetune_step import _STEP_KEYS
+    from pipeline.workflow.config import TrainConfig
+    from pipeline.lm.training.trainer import TrainSettings
+    from pipeline.workflow.finetune import _STEP_KEYS
 
     schema = {f.name for f in fields(TrainConfig)} - set(_STEP_KEYS)
     assert schema == {f.name for f in fields(TrainSettings)} - {"seed"}  # the job's seed seeds training

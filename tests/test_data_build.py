@@ -5,11 +5,11 @@ from types import SimpleNamespace
 
 import pytest
 
-from pipeline.data_build import (
+from pipeline.workflow.data_build import (
     TEST_CONVERSATIONS, TEST_WORLDS, TRAIN_CONVERSATIONS, TextSpec, build_splits, dataset_sha256, read_conversations,
     write_dataset,
 )
-from pipeline.world import World, load_worlds
+from pipeline.core.world import World, load_worlds
 
 
 def _data(**overrides):

@@ -8,13 +8,13 @@ import pytest
 import torch
 from transformers import LlamaConfig, LlamaForCausalLM
 
-from pipeline.chat import WORD_LEVEL_FORMAT, encode_prompt, turn_end_ids
-from pipeline.decode import HFDecoder
-from pipeline.env import Outcome
-from pipeline.generate import GeneratorConfig, generate_worlds
-from pipeline.scoring import parse_action
-from pipeline.texts import conversation, prompt_turns
-from pipeline.tokenizer import build_word_tokenizer
+from pipeline.lm.chat import WORD_LEVEL_FORMAT, encode_prompt, turn_end_ids
+from pipeline.lm.decoding.hf import HFDecoder
+from pipeline.core.environment import Outcome
+from pipeline.core.generation import GeneratorConfig, generate_worlds
+from pipeline.core.scoring import parse_action
+from pipeline.core.texts import conversation, prompt_turns
+from pipeline.lm.tokenizer import build_word_tokenizer
 
 FMT = WORD_LEVEL_FORMAT
 
@@ -194,7 +194,7 @@ def test_context_overflow_ends_episodes_with_an_error(model, tokenizer, worlds):
 
 @pytest.mark.skipif(importlib.util.find_spec("vllm") is not None, reason="vLLM is installed")
 def test_vllm_decoder_without_vllm_says_how_to_install(tokenizer):
-    from pipeline.vllm_backend import VLLMDecoder
+    from pipeline.lm.decoding.vllm import VLLMDecoder
 
     with pytest.raises(ImportError, match=r"pip install '\.\[gpu\]'"):
         VLLMDecoder("some/model", tokenizer, FMT)

@@ -8,8 +8,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from pipeline import conversation
-from pipeline.env import EpisodeRecord, GridEnv, Outcome
-from pipeline.texts import DIRECTIONS, VARIANTS, prompt_turns
+from pipeline.core.environment import EpisodeRecord, GridEnv, Outcome
+from pipeline.core.texts import DIRECTIONS, VARIANTS, prompt_turns
 
 
 def test_reset_is_the_third_prompt_turn(example_world, golden):

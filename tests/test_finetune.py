@@ -8,9 +8,9 @@ import pytest
 import torch
 from transformers import DataCollatorWithFlattening, Trainer, TrainerCallback
 
-from pipeline.chat import IGNORE_INDEX, WORD_LEVEL_FORMAT
-from pipeline.config import PYTHON_H, cxx_compiler
-from pipeline.finetune import (
+from pipeline.lm.chat import IGNORE_INDEX, WORD_LEVEL_FORMAT
+from pipeline.workflow.config import PYTHON_H, cxx_compiler
+from pipeline.lm.training.trainer import (
     cpu_has_bf16,
     RESULT_FILE,
     LengthGroupedBatches,
@@ -22,8 +22,8 @@ from pipeline.finetune import (
     _training_arguments,
     tokenize_conversations,
 )
-from pipeline.modeling import build_scratch_model, load_chat_format, load_model
-from pipeline.tokenizer import build_word_tokenizer
+from pipeline.lm.models import build_scratch_model, load_chat_format, load_model
+from pipeline.lm.tokenizer import build_word_tokenizer
 
 TINY = dict(hidden_size=32, num_layers=2, num_heads=2, intermediate_size=64, max_length=512)
 # One thread: tiny models gain nothing from two, and lose a lot when the machine is shared.
@@ -186,9 +186,9 @@ def test_bf16_on_a_cpu_without_bf16_hardware_falls_back_to_fp32(tmp_path, monkey
     xeon = "flags\t\t: fpu avx2 avx512f amx_bf16 amx_tile\n"
     assert (cpu_has_bf16(amd_avx2), cpu_has_bf16(zen5), cpu_has_bf16(xeon)) == (False, True, True)
     assert cpu_has_bf16("Features\t: fp asimd bf16\n")  # no x86 flags line: trusted
-    monkeypatch.setattr("pipeline.finetune.torch.cuda.is_available", lambda: False)
-    monkeypatch.setattr("pipeline.finetune.cpu_has_bf16", lambda: False)
-    with caplog.at_level("WARNING", logger="pipeline.finetune"):
+    monkeypatch.setattr("pipeline.lm.training.trainer.torch.cuda.is_available", lambda: False)
+    monkeypatch.setattr("pipeline.lm.training.trainer.cpu_has_bf16", lambda: False)
+    with caplog.at_level("WARNING", logger="pipeline.lm.training.trainer"):
         arguments = _training_arguments(TrainSettings(bf16=True, **QUIET), tmp_path)
     assert not arguments.bf16 and not arguments.use_cpu
     assert "no bf16 matmul hardware" in caplog.text

@@ -12,12 +12,12 @@ import random
 
 import pytest
 
-from pipeline.env import GridEnv, Outcome
-from pipeline.evaluate import optimal_record, reachable_record
-from pipeline.generate import GeneratorConfig, sample_world
-from pipeline.scoring import parse_action, parse_answer, plan_moves, score_optimal
-from pipeline.texts import MAP_VARIANTS, answer
-from pipeline.world import MOVES, World
+from pipeline.core.environment import GridEnv, Outcome
+from pipeline.workflow.evaluation import optimal_record, reachable_record
+from pipeline.core.generation import GeneratorConfig, sample_world
+from pipeline.core.scoring import parse_action, parse_answer, plan_moves, score_optimal
+from pipeline.core.texts import MAP_VARIANTS, answer
+from pipeline.core.world import MOVES, World
 
 N_OUTPUTS = 10_000
 SEED = 20240607

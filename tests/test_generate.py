@@ -9,8 +9,8 @@ import pytest
 from conftest import free_cells_form_a_tree, worlds
 from hypothesis import given
 
-from pipeline.generate import GeneratorConfig, WorldStats, generate_worlds, sample_world, world_stats
-from pipeline.world import World
+from pipeline.core.generation import GeneratorConfig, WorldStats, generate_worlds, sample_world, world_stats
+from pipeline.core.world import World
 
 
 def _dump(ws: list[World]) -> str:

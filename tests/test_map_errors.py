@@ -6,8 +6,8 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from pipeline import World
-from pipeline.map_errors import LINE_KINDS, NEIGHBOURS, STEP_BUCKETS, category, first_wrong_line, step_bucket
-from pipeline.texts import answer
+from pipeline.core.map_errors import LINE_KINDS, NEIGHBOURS, STEP_BUCKETS, category, first_wrong_line, step_bucket
+from pipeline.core.texts import answer
 
 # 3 x 3, start (0, 0), goal (2, 2); wall (1, 1), pit (0, 2): the path goes right along y = 0, then up.
 WORLD = World(3, 3, 0, 0, ((1, 1),), ((0, 2),), (0, 0), (2, 2))

@@ -1,8 +1,8 @@
 import pytest
 import torch
 
-from pipeline.chat import WORD_LEVEL_FORMAT, ChatFormat
-from pipeline.modeling import (
+from pipeline.lm.chat import WORD_LEVEL_FORMAT, ChatFormat
+from pipeline.lm.models import (
     ModelLoadError,
     build_scratch_model,
     count_parameters,
@@ -13,7 +13,7 @@ from pipeline.modeling import (
     training_flops,
     training_flops_per_token,
 )
-from pipeline.tokenizer import build_word_tokenizer
+from pipeline.lm.tokenizer import build_word_tokenizer
 
 TINY = dict(hidden_size=32, num_layers=2, num_heads=2, intermediate_size=64, max_length=256)
 

@@ -29,16 +29,16 @@ import pytest
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 
-from pipeline.config import ConfigError
-from pipeline.evaluate import PartialRecords
-from pipeline.finetune_step import discard_incomplete_checkpoints
-from pipeline.modeling import ModelLoadError
-from pipeline.run import run_job
-from pipeline.steps import ARTIFACTS_TAG, get_or_run
-from pipeline.tracking import (
+from pipeline.workflow.config import ConfigError
+from pipeline.workflow.evaluation import PartialRecords
+from pipeline.workflow.finetune import discard_incomplete_checkpoints
+from pipeline.lm.models import ModelLoadError
+from pipeline.workflow.job import run_job
+from pipeline.workflow.steps import ARTIFACTS_TAG, get_or_run
+from pipeline.workflow.tracking import (
     EPISODES_ARTIFACT, JOB_KIND, KIND_TAG, STEP_KIND, STEP_TAG, StoreError, ensure_experiment, step_run_tag,
 )
-from pipeline.world import WorldError, load_worlds
+from pipeline.core.world import WorldError, load_worlds
 
 ROOT = Path(__file__).resolve().parents[1]
 TOY = ["data=toy", "model=toy", "train=toy", "eval=toy"]
@@ -296,8 +296,8 @@ def test_bad_data_and_eval_values_are_refused_naming_them(store, overrides, erro
 
 
 def _model_dir(folder: Path, weights: bytes | None) -> Path:
-    from pipeline.modeling import build_scratch_model
-    from pipeline.tokenizer import build_word_tokenizer
+    from pipeline.lm.models import build_scratch_model
+    from pipeline.lm.tokenizer import build_word_tokenizer
 
     tokenizer = build_word_tokenizer(["Plan:\nup"], frame=5)
     model = build_scratch_model(tokenizer, hidden_size=16, num_layers=1, num_heads=2, intermediate_size=16)
@@ -448,7 +448,7 @@ def test_the_same_config_twice_gives_identical_hashes_records_and_metrics(tmp_pa
 def test_models_load_from_safetensors_only_and_remote_code_only_on_request():
     import inspect
 
-    from pipeline import modeling
+    from pipeline.lm import models as modeling
 
     source = inspect.getsource(modeling.load_model)
     assert "use_safetensors=True" in source and "trust_remote_code=trust_remote_code" in source

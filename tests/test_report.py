@@ -11,9 +11,9 @@ import pandas as pd
 import pytest
 from scipy.stats import binomtest
 
-from pipeline import report
-from pipeline.stats import mcnemar, mcnemar_exact, seeded_rate, wilson_interval
-from pipeline.tracking import (CURVE_METRIC, EPISODES_ARTIFACT, JOB_KIND, KIND_TAG, REPORT_KIND,
+from pipeline.report import build as report
+from pipeline.report.stats import mcnemar, mcnemar_exact, seeded_rate, wilson_interval
+from pipeline.workflow.tracking import (CURVE_METRIC, EPISODES_ARTIFACT, JOB_KIND, KIND_TAG, REPORT_KIND,
                                STEP_KIND, STEP_TAG, ensure_experiment, step_run_tag)
 
 N = 40
@@ -90,7 +90,7 @@ def episodes(mode: str, wins: set[int], dfs: bool = False) -> list[dict]:
 
 
 class Store:
-    """Builds runs in the layout of pipeline.tracking with the MLflow client."""
+    """Builds runs in the layout of pipeline.workflow.tracking with the MLflow client."""
 
     def __init__(self, tmp_path):
         from mlflow import MlflowClient
@@ -335,7 +335,7 @@ def test_report_runs_are_not_read_as_jobs(built):
 
 
 def test_train_box_comes_from_job_tags(tmp_path):
-    from pipeline.report_figures import train_box
+    from pipeline.report.figures import train_box
 
     s = Store(tmp_path)
     s.job("optimal", "fwd", "marking-deadend", wins=set(range(5)), job_tags={"train_max_x": "6", "train_max_y": "4"})
@@ -371,10 +371,10 @@ def test_cli_empty_experiment(tmp_path, store):
 def test_callback_logs_failures_as_warnings(tmp_path, caplog):
     from hydra.utils import instantiate
 
-    callback = instantiate({"_target_": "pipeline.report.ReportCallback",
+    callback = instantiate({"_target_": "pipeline.report.build.ReportCallback",
                             "tracking_uri": f"sqlite:///{tmp_path}/none.db", "experiment": "cogmap",
                             "out_dir": str(tmp_path / "r")})
-    with caplog.at_level(logging.WARNING, logger="pipeline.report"):
+    with caplog.at_level(logging.WARNING, logger="pipeline.report.build.build"):
         callback.on_multirun_end(config=None)
     assert "Could not build the report" in caplog.text
 
@@ -391,7 +391,7 @@ def test_callback_builds_report(store, tmp_path):
 
 
 def _graded(world_obj, variant: str, answers: list[str]) -> list[dict]:
-    from pipeline.evaluate import optimal_record
+    from pipeline.workflow.evaluation import optimal_record
 
     stats = {"size_x": world_obj.size_x, "size_y": world_obj.size_y, "optimal_length": 4, "dead_ends": 0,
              "up_right_only": True, "interpolated": True}
@@ -400,7 +400,7 @@ def _graded(world_obj, variant: str, answers: list[str]) -> list[dict]:
 
 def test_map_errors_count_failing_answers_by_the_kind_of_their_first_wrong_line():
     from pipeline import World
-    from pipeline.texts import answer
+    from pipeline.core.texts import answer
 
     grid = World(3, 3, 0, 0, ((1, 1),), ((0, 2),), (0, 0), (2, 2))
     golden = answer(grid, "bwd", "marking-deadend", "optimal").split("\n")
@@ -425,7 +425,7 @@ def test_map_errors_count_failing_answers_by_the_kind_of_their_first_wrong_line(
 
 def test_a_gallery_draws_successes_above_failures_chosen_by_world_index(tmp_path):
     from pipeline import World
-    from pipeline.report_figures import episode_gallery, gallery_picks
+    from pipeline.report.figures import episode_gallery, gallery_picks
 
     grid = World(3, 3, 0, 0, ((1, 1),), ((0, 2),), (0, 0), (2, 2))
     records = [{"world_index": i, "success": i % 3 == 0, "outcome": "success" if i % 3 == 0 else "fail",

@@ -12,9 +12,9 @@ from safetensors.torch import load_file
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 
-from pipeline.config import ConfigError
-from pipeline.run import run_job
-from pipeline.tracking import EPISODE_FIELDS, EPISODES_ARTIFACT, JOB_KIND, KIND_TAG, step_run_tag
+from pipeline.workflow.config import ConfigError
+from pipeline.workflow.job import run_job
+from pipeline.workflow.tracking import EPISODE_FIELDS, EPISODES_ARTIFACT, JOB_KIND, KIND_TAG, step_run_tag
 
 ROOT = Path(__file__).resolve().parents[1]
 TOY = ["data=toy", "model=toy", "train=toy", "eval=toy", "train.max_steps=2", "eval.n_worlds=3",
@@ -68,7 +68,7 @@ def test_a_job_runs_its_steps_then_reuses_them(tmp_path):
 def test_the_finetuned_model_is_an_mlflow_model_and_inspect_shows_its_answers(tmp_path):
     import mlflow.transformers
 
-    from pipeline.inspect import inspect_run, main as inspect_main
+    from pipeline.report.inspect import inspect_run, main as inspect_main
 
     cfg = _cfg(tmp_path, "variant=marking-deadend", "eval.n_worlds=2")
     run_job(cfg)

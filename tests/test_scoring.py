@@ -8,7 +8,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from pipeline import conversation
-from pipeline.scoring import (
+from pipeline.core.scoring import (
     ParsedAnswer,
     PlanScore,
     first_difference,
@@ -16,8 +16,8 @@ from pipeline.scoring import (
     parse_answer,
     score_optimal,
 )
-from pipeline.texts import DIRECTIONS, MAP_VARIANTS, MODES, VARIANTS
-from pipeline.world import World
+from pipeline.core.texts import DIRECTIONS, MAP_VARIANTS, MODES, VARIANTS
+from pipeline.core.world import World
 
 GOLDEN_LINES = GOLDEN_FWD_MARKING_DEADEND.split("\n")
 # The worked example again, at module level: hypothesis tests cannot take function-scoped fixtures.

@@ -3,8 +3,8 @@
 import mlflow
 import pytest
 
-from pipeline.steps import find_finished, get_or_run
-from pipeline.tracking import HASH_TAG, STEP_TAG, ensure_experiment
+from pipeline.workflow.steps import find_finished, get_or_run
+from pipeline.workflow.tracking import HASH_TAG, STEP_TAG, ensure_experiment
 
 
 @pytest.fixture(scope="module")

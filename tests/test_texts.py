@@ -7,7 +7,7 @@ from conftest import worlds
 from hypothesis import given
 
 from pipeline import World, conversation
-from pipeline.texts import (
+from pipeline.core.texts import (
     BASELINES,
     DIRECTIONS,
     INSTRUCTION,
@@ -26,7 +26,7 @@ from pipeline.texts import (
     prompt_turns,
     task_text,
 )
-from pipeline.world import step
+from pipeline.core.world import step
 
 
 def _world(walls=(), pits=(), size=(3, 3)) -> World:

@@ -3,10 +3,10 @@
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.chat import WORD_LEVEL_FORMAT, encode_conversation
-from pipeline.generate import GeneratorConfig, generate_worlds
-from pipeline.texts import conversation
-from pipeline.tokenizer import build_word_tokenizer, count_pieces, pieces
+from pipeline.lm.chat import WORD_LEVEL_FORMAT, encode_conversation
+from pipeline.core.generation import GeneratorConfig, generate_worlds
+from pipeline.core.texts import conversation
+from pipeline.lm.tokenizer import build_word_tokenizer, count_pieces, pieces
 
 WORLDS = generate_worlds(30, 0, GeneratorConfig(size_x=(2, 5), size_y=(2, 5), frame=8))
 TEXTS = [turn["value"] for w in WORLDS for turn in conversation(w, "fwd", "marking-deadend", "reachable")]

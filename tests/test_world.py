@@ -10,8 +10,8 @@ import pytest
 from conftest import free_cells_form_a_tree, worlds
 from hypothesis import given
 
-from pipeline.generate import world_stats
-from pipeline.world import MOVES, World, WorldError, load_worlds, move_between, save_worlds, step
+from pipeline.core.generation import world_stats
+from pipeline.core.world import MOVES, World, WorldError, load_worlds, move_between, save_worlds, step
 
 
 def _json(**changes) -> dict:

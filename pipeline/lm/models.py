@@ -22,8 +22,8 @@ from transformers import (
     PreTrainedTokenizerBase,
 )
 
-from pipeline.chat import ChatFormat
-from pipeline.config import ATTENTION_IMPLEMENTATIONS
+from pipeline.lm.chat import ChatFormat
+from pipeline.workflow.config import ATTENTION_IMPLEMENTATIONS
 
 CHAT_FORMAT_FILE = "chat_format.json"
 DTYPES = ("float32", "bfloat16", "float16")

@@ -17,8 +17,8 @@ from typing import Any, Optional
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, OmegaConf
 
-from pipeline.texts import MAP_VARIANTS, PAPER_MAP_VARIANTS, PROMPTS
-from pipeline.tracking import default_tracking_uri
+from pipeline.core.texts import MAP_VARIANTS, PAPER_MAP_VARIANTS, PROMPTS
+from pipeline.workflow.tracking import default_tracking_uri
 
 # transformers' attention kernels (model.attn_implementation). On the 2-core AMX CPU, SDPA and "eager" (two
 # batched matmuls and a softmax) train heads of 64 in bf16 at about the same speed; eager is faster for one
@@ -271,7 +271,7 @@ def validate(cfg: DictConfig) -> str:
 def _check_test_file(cfg: DictConfig) -> None:
     """The test file exists, holds data.n_test worlds, and (for a model trained from scratch, whose
     vocabulary holds the cells of data.frame) no world reaches outside the frame."""
-    from pipeline.world import WorldError, load_worlds
+    from pipeline.core.world import WorldError, load_worlds
 
     data = cfg.data
     path = Path(data.test_file).expanduser()

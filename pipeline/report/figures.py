@@ -1,5 +1,5 @@
 """The report's figures (PNG): size heatmaps (paper Figures 6-15), moves vs optimal length (Figure 4) and
-rapid adaptation (Figure 3). Inputs are the episode, curve and loss frames of :mod:`pipeline.report`.
+rapid adaptation (Figure 3). Inputs are the episode, curve and loss frames of :mod:`pipeline.report.build.build`.
 
 Figures are drawn with matplotlib's object API (``Figure`` renders with Agg), so no pyplot state and no
 display are involved.
@@ -16,8 +16,8 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 from matplotlib.ticker import MaxNLocator
 
-from pipeline.texts import VARIANTS
-from pipeline.tracking import PAPER_ROWS, TRAIN_MAX_TAGS
+from pipeline.core.texts import VARIANTS
+from pipeline.workflow.tracking import PAPER_ROWS, TRAIN_MAX_TAGS
 
 VARIANT_ORDER = VARIANTS
 HEATMAP_METRICS = {  # name -> (title, outcome it counts or None for success, modes it applies to)
@@ -245,7 +245,7 @@ def gallery_picks(records: list[dict], per_outcome: int = GALLERY_PER_OUTCOME) -
 
 
 def _walk_cells(world, moves: list[str]) -> list[tuple[int, int]]:
-    from pipeline.world import step
+    from pipeline.core.world import step
 
     cells = [world.start]
     for move in moves:

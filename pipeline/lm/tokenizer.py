@@ -17,7 +17,7 @@ from typing import Iterable
 from tokenizers import Regex, Tokenizer, decoders, models, pre_tokenizers
 from transformers import PreTrainedTokenizerFast
 
-from pipeline.chat import WORD_LEVEL_FORMAT
+from pipeline.lm.chat import WORD_LEVEL_FORMAT
 
 # "(" never takes a leading space, so " (1, 1)" is a space and the same cell word as at a line start.
 PIECE_PATTERN = r"\(-?\d+, -?\d+\)| ?-?\d+| ?[A-Za-z']+|\n| ?[^\sA-Za-z\d(]|\(|\s"

@@ -7,7 +7,7 @@ A row leaves the batch as soon as its turn ends, so finished sequences cost noth
 
 In the reachable setting an episode keeps its cache across turns: the env's next observation is encoded
 with `encode_followup` and appended; the history is never re-encoded. The episode loop (env, parsing,
-records) is shared with the vLLM backend (`pipeline.vllm_backend`): a backend only *continues sequences*
+records) is shared with the vLLM backend (`pipeline.lm.decoding.vllm`): a backend only *continues sequences*
 (`SequenceBackend`).
 """
 
@@ -22,11 +22,11 @@ from typing import Callable, Iterable, Literal, NamedTuple, Protocol, Sequence
 import torch
 from transformers import DynamicCache
 
-from pipeline.chat import ChatFormat, TextTokenizer, encode_followup, encode_prompt, turn_end_ids
-from pipeline.env import EpisodeRecord, GridEnv, Outcome
-from pipeline.scoring import parse_action
-from pipeline.texts import prompt_turns
-from pipeline.world import World
+from pipeline.lm.chat import ChatFormat, TextTokenizer, encode_followup, encode_prompt, turn_end_ids
+from pipeline.core.environment import EpisodeRecord, GridEnv, Outcome
+from pipeline.core.scoring import parse_action
+from pipeline.core.texts import prompt_turns
+from pipeline.core.world import World
 
 StopReason = Literal["turn_end", "max_new_tokens", "context", "error"]
 # How `play` keeps the history: "cached" is the real thing; the other two are the baselines that

@@ -21,7 +21,7 @@ from typing import Callable
 import mlflow
 from mlflow.entities import RunStatus
 
-from pipeline.tracking import HASH_TAG, KIND_TAG, STEP_KIND, STEP_TAG, file_lock
+from pipeline.workflow.tracking import HASH_TAG, KIND_TAG, STEP_KIND, STEP_TAG, file_lock
 
 NOTE_TAG = "cogmap.note"
 # How many top-level artifacts the step logged; a reused run must still have some if it had any.

@@ -13,9 +13,9 @@ from __future__ import annotations
 import re
 from dataclasses import asdict, dataclass
 
-from pipeline.scoring import _as_text, first_difference
-from pipeline.texts import MAP_VARIANTS, answer
-from pipeline.world import MOVES, Cell, World, step
+from pipeline.core.scoring import _as_text, first_difference
+from pipeline.core.texts import MAP_VARIANTS, answer
+from pipeline.core.world import MOVES, Cell, World, step
 
 _CELL = re.compile(r"\((-?\d+), (-?\d+)\)")
 _HEADERS = {"Thought:": "thought", "Backtrack:": "backtrack", "Plan:": "plan"}

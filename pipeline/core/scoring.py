@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
-from pipeline.texts import MAP_VARIANTS, answer, thought_lines
-from pipeline.world import MOVES, World, step
+from pipeline.core.texts import MAP_VARIANTS, answer, thought_lines
+from pipeline.core.world import MOVES, World, step
 
 _HEADERS = ("Thought:", "Backtrack:", "Plan:", "Action:")
 

@@ -6,7 +6,7 @@ import random
 from functools import lru_cache, cache
 from typing import Literal, NamedTuple, get_args
 
-from pipeline.world import MOVES, Cell, World, move_between, step
+from pipeline.core.world import MOVES, Cell, World, move_between, step
 
 Direction = Literal["fwd", "bwd"]
 Mode = Literal["optimal", "reachable"]

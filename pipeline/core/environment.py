@@ -5,8 +5,8 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 from enum import Enum
 
-from pipeline.texts import first_human_text, observation
-from pipeline.world import MOVES, Cell, World, step
+from pipeline.core.texts import first_human_text, observation
+from pipeline.core.world import MOVES, Cell, World, step
 
 
 class Outcome(str, Enum):

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from itertools import count
 from collections.abc import Iterator
 
-from pipeline.world import MOVES, Cell, World
+from pipeline.core.world import MOVES, Cell, World
 
 
 @dataclass(frozen=True)

@@ -24,7 +24,7 @@ from contextlib import contextmanager, nullcontext
 from pathlib import Path
 from typing import Iterator
 
-from pipeline.texts import NAMED_SUFFIX, PAPER_MAP_VARIANTS
+from pipeline.core.texts import NAMED_SUFFIX, PAPER_MAP_VARIANTS
 
 KIND_TAG = "cogmap.kind"
 STEP_TAG = "cogmap.step"

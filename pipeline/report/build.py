@@ -1,7 +1,7 @@
 """The report: the paper's tables and figures, from the MLflow store only.
 
 ``python -m pipeline.report`` (and :class:`ReportCallback` at the end of every multirun) reads the finished
-job runs of an experiment (layout in :mod:`pipeline.tracking`), their eval runs' ``episodes.jsonl`` and
+job runs of an experiment (layout in :mod:`pipeline.workflow.tracking`), their eval runs' ``episodes.jsonl`` and
 metric histories, and writes Markdown/CSV tables, PNG figures and an index ``report.md`` under ``out_dir``;
 the same files are logged as artifacts of a new run tagged ``cogmap.kind=report``.
 
@@ -27,12 +27,12 @@ from typing import Callable, Iterable
 import pandas as pd
 from hydra.experimental.callback import Callback
 
-from pipeline import texts
-from pipeline.data_build import TEST_WORLDS
-from pipeline.map_errors import STEP_BUCKETS, category, step_bucket
-from pipeline.world import load_worlds
-from pipeline.stats import mcnemar, seeded_rate
-from pipeline.tracking import (
+from pipeline.core import texts
+from pipeline.workflow.data_build import TEST_WORLDS
+from pipeline.core.map_errors import STEP_BUCKETS, category, step_bucket
+from pipeline.core.world import load_worlds
+from pipeline.report.stats import mcnemar, seeded_rate
+from pipeline.workflow.tracking import (
     CURVE_EPISODES_ARTIFACT,
     CURVE_METRIC,
     EPISODE_FIELDS,
@@ -313,7 +313,7 @@ def load_store(tracking_uri: str, experiment: str) -> StoreData:
     test_worlds: dict[str, list] = {}
     curve_cache: dict[str, pd.DataFrame] = {}
     # matplotlib comes with report_figures: imported here, not when a job loads the report callback.
-    from pipeline.report_figures import gallery_picks
+    from pipeline.report.figures import gallery_picks
 
     with tempfile.TemporaryDirectory() as scratch:
         for job in jobs:
@@ -826,7 +826,7 @@ def figure4_map(cells: Cells) -> tuple[str, str] | None:
 
 def write_figures(data: StoreData, out: Path) -> tuple[list[Path], dict[str, pd.DataFrame]]:
     """Every figure (and Figure 4's fits as a table); figures without data are left out."""
-    from pipeline import report_figures as figs
+    from pipeline.report import figures as figs
 
     paths = figs.size_heatmaps(data.episodes, out)
     fig4, fits = figs.moves_vs_optimal(data.episodes, out, figure4_map(Cells(data.episodes)))

@@ -16,10 +16,10 @@ from typing import Iterable, Sequence
 
 from tqdm import tqdm
 
-from pipeline.generate import GeneratorConfig, generate_worlds, world_stats
-from pipeline.tokenizer import count_pieces
-from pipeline.world import World, load_worlds, save_worlds
-from pipeline.texts import conversation
+from pipeline.core.generation import GeneratorConfig, generate_worlds, world_stats
+from pipeline.lm.tokenizer import count_pieces
+from pipeline.core.world import World, load_worlds, save_worlds
+from pipeline.core.texts import conversation
 
 TRAIN_WORLDS, TEST_WORLDS = "worlds/train.jsonl", "worlds/test.jsonl"
 TRAIN_CONVERSATIONS, TEST_CONVERSATIONS = "conversations/train.jsonl", "conversations/test.jsonl"

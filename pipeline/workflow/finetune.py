@@ -14,10 +14,10 @@ from pathlib import Path
 import mlflow
 from omegaconf import DictConfig, OmegaConf
 
-from pipeline.chat import ChatFormat
-from pipeline.finetune import CHECKPOINTS_DIR, RESULT_FILE, TrainResult, TrainSettings, finetune
-from pipeline.modeling import build_scratch_model, load_model, load_tokenizer
-from pipeline.tokenizer import build_word_tokenizer
+from pipeline.lm.chat import ChatFormat
+from pipeline.lm.training.trainer import CHECKPOINTS_DIR, RESULT_FILE, TrainResult, TrainSettings, finetune
+from pipeline.lm.models import build_scratch_model, load_model, load_tokenizer
+from pipeline.lm.tokenizer import build_word_tokenizer
 
 log = logging.getLogger(__name__)
 
@@ -106,7 +106,7 @@ def _launch_distributed(cfg, settings: TrainSettings, fmt: ChatFormat, tokenizer
     spec_path = step_dir / "finetune_spec.json"
     spec_path.write_text(json.dumps(spec, indent=2))
     command = [sys.executable, "-m", "accelerate.commands.launch", "--config_file", str(cfg.train.accelerate_config),
-               "-m", "pipeline.finetune", "--spec", str(spec_path)]
+               "-m", "pipeline.lm.training.trainer", "--spec", str(spec_path)]
     subprocess.run(command, check=True)
     return TrainResult(**json.loads((step_dir / RESULT_FILE).read_text()))
 

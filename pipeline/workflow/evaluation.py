@@ -13,17 +13,17 @@ from typing import Iterable, Protocol, Sequence
 
 from tqdm import tqdm
 
-from pipeline.env import Outcome
-from pipeline.map_errors import first_wrong_line
-from pipeline.scoring import score_optimal
-from pipeline.texts import prompt_turns
-from pipeline.world import World
+from pipeline.core.environment import Outcome
+from pipeline.core.map_errors import first_wrong_line
+from pipeline.core.scoring import score_optimal
+from pipeline.core.texts import prompt_turns
+from pipeline.core.world import World
 
 _STAT_FIELDS = ("size_x", "size_y", "optimal_length", "dead_ends", "up_right_only", "interpolated")
 
 
 class Decoder(Protocol):
-    """What eval needs of a decoding backend (pipeline.decode.HFDecoder, pipeline.vllm_backend.VLLMDecoder)."""
+    """What eval needs of a decoding backend (pipeline.lm.decoding.hf.HFDecoder, pipeline.lm.decoding.vllm.VLLMDecoder)."""
 
     def answer(self, prompts: list[list[dict]]) -> list: ...
 
@@ -32,18 +32,18 @@ class Decoder(Protocol):
 
 def make_decoder(cfg, model_dir: str) -> Decoder:
     """The configured decoding backend over a finetuned model directory (safetensors, tokenizer, chat format)."""
-    from pipeline.modeling import load_chat_format, load_model, load_tokenizer
+    from pipeline.lm.models import load_chat_format, load_model, load_tokenizer
 
     fmt = load_chat_format(model_dir)
     tokenizer = load_tokenizer(model_dir, trust_remote_code=cfg.model.trust_remote_code)
     common = dict(batch_size=cfg.eval.batch_size, max_new_tokens=cfg.eval.max_new_tokens)
     if cfg.eval.backend.value == "vllm":
-        from pipeline.vllm_backend import VLLMDecoder
+        from pipeline.lm.decoding.vllm import VLLMDecoder
 
         return VLLMDecoder(model_dir, tokenizer, fmt, dtype=cfg.model.dtype, **common)
     import torch
 
-    from pipeline.decode import HFDecoder
+    from pipeline.lm.decoding.hf import HFDecoder
 
     model = load_model(model_dir, dtype=cfg.model.dtype, trust_remote_code=cfg.model.trust_remote_code,
                        attn_implementation=cfg.model.attn_implementation)

@@ -32,10 +32,10 @@ from transformers import PreTrainedModel, PreTrainedTokenizerBase, Trainer, Trai
 from transformers.trainer_callback import ProgressCallback
 from transformers.trainer_utils import PREFIX_CHECKPOINT_DIR, get_last_checkpoint
 
-from pipeline.data_build import read_conversations
-from pipeline.chat import IGNORE_INDEX, WORD_LEVEL_FORMAT, ChatFormat, encode_conversation
-from pipeline.config import CompileMode
-from pipeline.modeling import build_scratch_model, load_model, load_tokenizer, save_chat_format
+from pipeline.workflow.data_build import read_conversations
+from pipeline.lm.chat import IGNORE_INDEX, WORD_LEVEL_FORMAT, ChatFormat, encode_conversation
+from pipeline.workflow.config import CompileMode
+from pipeline.lm.models import build_scratch_model, load_model, load_tokenizer, save_chat_format
 
 log = logging.getLogger(__name__)
 
@@ -551,7 +551,7 @@ def run_spec(spec: dict) -> TrainResult:
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    """``python -m pipeline.finetune --spec spec.json`` (or under ``accelerate launch -m``)."""
+    """``python -m pipeline.lm.training.trainer --spec spec.json`` (or under ``accelerate launch -m``)."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--spec", required=True, help="resolved JSON spec (see run_spec)")
     args = parser.parse_args(argv)

@@ -1,7 +1,7 @@
-"""Greedy decoding with vLLM: the same `answer` / `play` interface as `pipeline.decode.HFDecoder`.
+"""Greedy decoding with vLLM: the same `answer` / `play` interface as `pipeline.lm.decoding.hf.HFDecoder`.
 
 vLLM is the optional `[gpu]` extra, imported only when a `VLLMDecoder` is built. Prompts go in as token ids
-(encoded by `pipeline.chat`, exactly as in training). In the reachable setting each turn resubmits the
+(encoded by `pipeline.lm.chat`, exactly as in training). In the reachable setting each turn resubmits the
 whole history; with `enable_prefix_caching=True` vLLM finds the history's KV blocks in its prefix cache,
 so only the new observation and the answer are computed. The episode loop is `decode.play_episodes`.
 """
@@ -10,8 +10,8 @@ from __future__ import annotations
 
 from typing import Callable, Sequence
 
-from pipeline.chat import ChatFormat, TextTokenizer, encode_prompt, turn_end_ids
-from pipeline.decode import (
+from pipeline.lm.chat import ChatFormat, TextTokenizer, encode_prompt, turn_end_ids
+from pipeline.lm.decoding.hf import (
     Continuation,
     EpisodeResult,
     Generation,
@@ -21,7 +21,7 @@ from pipeline.decode import (
     generation,
     play_episodes,
 )
-from pipeline.world import World
+from pipeline.core.world import World
 
 
 def _import_vllm():

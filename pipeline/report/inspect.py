@@ -1,0 +1,157 @@
+"""`python -m pipeline.inspect RUN_ID [--world N] [--failed]`: show what a model wrote for a test world.
+
+RUN_ID is a job run or its eval run. For each episode shown: the world and the outcome, the task prompt,
+and the model's answer beside the golden one (rebuilt from the world), the first differing line marked; in
+the reachable setting, the model's answer of every turn after the observation it answered.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+from itertools import zip_longest
+from pathlib import Path
+from typing import Sequence
+
+from pipeline.workflow.data_build import SUMMARY, TEST_WORLDS
+from pipeline.core.environment import GridEnv
+from pipeline.core.scoring import _as_text, first_difference
+from pipeline.core.texts import VARIANTS, answer, first_human_text
+from pipeline.workflow.tracking import EPISODES_ARTIFACT, JOB_KIND, KIND_TAG, default_tracking_uri, step_run_tag
+from pipeline.core.world import World, load_worlds
+
+WIDTH = 30
+
+
+class InspectError(RuntimeError):
+    """What the user asked for cannot be shown (no such run, world out of range)."""
+
+
+def side_by_side(produced: str, golden: str) -> list[str]:
+    """The two answers line by line, numbered, with ``>>`` on the first line where they differ."""
+    ours, theirs = _as_text(produced).split("\n"), golden.split("\n")
+    first = first_difference(ours, theirs)
+    rows = [f"    {'':>4}  {'model':<{WIDTH}}  golden"]
+    for number, (a, b) in enumerate(zip_longest(ours, theirs), 1):
+        mark = ">>" if first is not None and number - 1 == first else ("  " if a == b else " ~")
+        a = "(ended)" if a is None else a
+        rows.append(f"{mark}  {number:>4}  {a[:WIDTH]:<{WIDTH}}  {'(ended)' if b is None else b}")
+    verdict = "identical" if first is None else f"first difference at line {first + 1}"
+    return [f"answer ({verdict}):", *rows]
+
+
+def reachable_turns(world: World, moves: Sequence[str], answers: Sequence[str]) -> list[str]:
+    """Each observation the model saw and its answer, replayed through the environment."""
+    env, lines = GridEnv(world, max_steps=max(len(answers), 1)), []
+    env.reset()
+    observation = "(the task prompt above)"
+    for turn, text in enumerate(answers, 1):
+        lines += [f"--- turn {turn}: observation", observation, f"--- turn {turn}: model", _as_text(text)]
+        if turn - 1 >= len(moves):
+            break
+        result = env.step(moves[turn - 1])
+        if result.done:
+            break
+        observation = result.observation
+    return lines
+
+
+def show_episode(record: dict, world: World, direction: str, variant: str, mode: str) -> str:
+    """One episode as text: header, prompt, and the model's answer(s) against the golden one."""
+    kind = "interpolated" if record.get("interpolated") else "extrapolated"
+    lines = [f"world {record['world_index']} ({world.size_x} x {world.size_y}, {kind}, optimal length "
+             f"{record.get('optimal_length')}): {record.get('outcome')}"
+             + (f" ({record['error']})" if record.get("error") else ""),
+             "--- task prompt", first_human_text(world)]
+    answers = record.get("answers") or []
+    if mode == "optimal":
+        golden = answer(world, direction, variant, "optimal")
+        lines += side_by_side(answers[0] if answers else "", golden)
+        wrong = record.get("first_wrong_line")
+        if wrong:
+            where = ", ".join(f"{k} {wrong[k]}" for k in ("section", "line", "step", "state", "neighbour",
+                                                              "label_error") if wrong.get(k) is not None)
+            lines.append(f"first wrong line: {where}")
+    else:
+        lines += reachable_turns(world, record.get("moves") or [], answers)
+        lines.append(f"moves: {' '.join(record.get('moves') or [])}")
+    return "\n".join(lines)
+
+
+def _runs(client, run_id: str) -> tuple:
+    """(job run, eval run) for a job run id or an eval run id."""
+    from mlflow.exceptions import MlflowException
+
+    try:
+        run = client.get_run(run_id)
+    except MlflowException:
+        raise InspectError(f"no run {run_id!r} in this store; give a job run id or its eval run id "
+                           "(the job's summary line prints the job run id)") from None
+    if run.data.tags.get(KIND_TAG) == JOB_KIND:
+        job = run
+    else:
+        found = client.search_runs([run.info.experiment_id],
+                                   filter_string=f"tags.`{step_run_tag('eval')}` = '{run_id}'", max_results=1)
+        if not found:
+            raise InspectError(f"run {run_id!r} is neither a job run nor the eval run of one")
+        job = found[0]
+    eval_id = job.data.tags.get(step_run_tag("eval"))
+    if not eval_id:
+        raise InspectError(f"job {job.info.run_id} has no eval run (it did not finish)")
+    return job, client.get_run(eval_id)
+
+
+def inspect_run(tracking_uri: str, run_id: str, world: int | None = None, failed: bool = False,
+                limit: int = 3) -> str:
+    """The text `python -m pipeline.inspect` prints."""
+    from mlflow.tracking import MlflowClient
+
+    client = MlflowClient(tracking_uri)
+    job, evaluation = _runs(client, run_id)
+    tags = job.data.tags
+    direction, variant, mode = tags.get("direction", "fwd"), tags.get("variant", ""), tags.get("mode", "optimal")
+    if variant not in VARIANTS:
+        raise InspectError(f"job {job.info.run_id} has variant {variant!r}; this version knows {', '.join(VARIANTS)}")
+    with tempfile.TemporaryDirectory() as scratch:
+        data_id = tags[step_run_tag("data-build")]
+        worlds = load_worlds(client.download_artifacts(data_id, TEST_WORLDS, scratch))
+        summary = json.loads(Path(client.download_artifacts(data_id, SUMMARY, scratch)).read_text())
+        path = client.download_artifacts(evaluation.info.run_id, EPISODES_ARTIFACT, scratch)
+        records = [json.loads(line) for line in Path(path).read_text().splitlines() if line.strip()]
+    direction = (summary.get("text_spec") or {}).get("direction") or direction
+    if world is not None:
+        chosen = [r for r in records if r["world_index"] == world]
+        if not chosen:
+            raise InspectError(f"--world {world}: the eval ran worlds 0..{len(records) - 1}")
+    else:
+        chosen = [r for r in records if not r["success"]] if failed else records
+        chosen = chosen[:limit]
+    head = (f"job {job.info.run_id} · {direction} {variant} {mode} · eval run {evaluation.info.run_id} · "
+            f"{sum(r['success'] for r in records)}/{len(records)} succeeded")
+    if not chosen:
+        return head + "\nno episode to show" + (" (none failed)" if failed else "")
+    return "\n\n".join([head, *(show_episode(r, worlds[r["world_index"]], direction, variant, mode)
+                                for r in chosen)]) + "\n"
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m pipeline.inspect", description=__doc__.split("\n")[0])
+    parser.add_argument("run_id", help="a job run id (printed by each job) or its eval run id")
+    parser.add_argument("--world", type=int, help="the test world's index (default: the first few)")
+    parser.add_argument("--failed", action="store_true", help="only episodes that failed")
+    parser.add_argument("--limit", type=int, default=3, help="how many episodes without --world (default 3)")
+    parser.add_argument("--tracking-uri", default=None, help="MLflow store (default: outputs/mlflow.db)")
+    args = parser.parse_args(argv)
+    try:
+        print(inspect_run(args.tracking_uri or default_tracking_uri(), args.run_id, args.world, args.failed,
+                          args.limit), end="")
+    except InspectError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
