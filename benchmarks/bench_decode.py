@@ -89,7 +89,7 @@ def main() -> None:
 
     # Reachable setting
     caps = dict(max_new_tokens=args.first_tokens, max_followup_tokens=args.move_tokens)
-    play = dict(max_steps=args.max_steps, choose_move=random_free_move)
+    play = dict(max_moves=args.max_steps, choose_move=random_free_move)
     dec = decoder(args.batch_size, **caps)
     dec.play(worlds[:2], **play)  # warm-up
     cached, t_cached = timed(lambda: dec.play(worlds, **play), args.repeats)
@@ -112,7 +112,7 @@ def main() -> None:
     ours = {}
     for batch_size in (args.batch_size, 1):
         dec = decoder(batch_size, max_new_tokens=args.answer_tokens)
-        gens, seconds = timed(lambda: dec.answer(prompts), args.repeats)
+        gens, seconds = timed(lambda: dec.generate(prompts), args.repeats)
         ours[batch_size] = sum(g.n_tokens for g in gens) / seconds
     n_gen, t_gen = timed(lambda: generate_batched(model, tokenizer, prompts, args.batch_size, args.answer_tokens),
                          args.repeats)

@@ -48,7 +48,8 @@ from transformers import TrainerCallback
 from pipeline.lm.chat import WORD_LEVEL_FORMAT, encode_conversation
 from pipeline.lm.training.trainer import TrainSettings, finetune
 from pipeline.core.generation import GeneratorConfig, generate_worlds
-from pipeline.lm.models import build_scratch_model, count_parameters, training_flops
+from pipeline.lm.models import build_scratch_model
+from flops import count_parameters, training_flops
 from pipeline.core.texts import conversation
 from pipeline.lm.tokenizer import build_word_tokenizer
 

@@ -13,6 +13,19 @@ from hypothesis import strategies as st
 from pipeline.core.generation import GeneratorConfig, sample_world
 from pipeline.core.world import World, load_worlds
 
+ROOT = Path(__file__).resolve().parents[1]   # the repository
+TOY = ("data=toy", "model=toy", "train=toy", "eval=toy")
+
+
+def compose_job(root, *overrides, name: str = "config", config_dir: Path | None = None):
+    """THE way tests compose a job's config: the toy presets, a store under ``root``, then ``overrides``."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(str(config_dir or ROOT / "conf"), version_base="1.3"):
+        return compose(name, overrides=[*TOY, f"tracking.root={root}", *overrides])
+
 
 def _paper_test() -> Path:
     """The paper's released test worlds: $COGMAP_PAPER_TEST, else ``shared/`` beside the checkout (where the

@@ -53,20 +53,20 @@ class GridEnv:
     """Walks one world. `reset()` gives the third human turn; each `step(move)` the next observation.
 
     An episode ends with SUCCESS on the goal, DEADEND on a move outside the grid or into a wall or pit,
-    INVALID on an answer that is not a move, and MAX_STEP once `max_steps` moves have not reached the
-    goal (so the model is never asked for move max_steps + 1, which would be "more than" the limit).
+    INVALID on an answer that is not a move, and MAX_STEP once `max_moves` moves have not reached the
+    goal (so the model is never asked for move max_moves + 1, which would be "more than" the limit).
     """
 
     world: World
-    max_steps: int = 200
+    max_moves: int = 200
     position: Cell = field(init=False)
     moves: list[str] = field(init=False, default_factory=list)
     outcome: Outcome | None = field(init=False, default=None)
     invalid_answer: str | None = field(init=False, default=None)
 
     def __post_init__(self) -> None:
-        if self.max_steps < 1:
-            raise ValueError(f"max_steps must be at least 1, got {self.max_steps}")
+        if self.max_moves < 1:
+            raise ValueError(f"max_moves must be at least 1, got {self.max_moves}")
         self.position = self.world.start
 
     @property
@@ -96,7 +96,7 @@ class GridEnv:
         self.position = target
         if target == self.world.goal:
             return self._end(Outcome.SUCCESS)
-        if len(self.moves) >= self.max_steps:
+        if len(self.moves) >= self.max_moves:
             return self._end(Outcome.MAX_STEP)
         return StepResult(observation=observation(self.world, target), done=False, outcome=None)
 

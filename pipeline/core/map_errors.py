@@ -14,7 +14,8 @@ import re
 from dataclasses import asdict, dataclass
 
 from pipeline.core.scoring import _as_text, first_difference
-from pipeline.core.texts import MAP_VARIANTS, answer
+from pipeline.core.texts import answer
+from pipeline.core.variants import MAP_VARIANTS
 from pipeline.core.world import MOVES, Cell, World, step
 
 _CELL = re.compile(r"\((-?\d+), (-?\d+)\)")

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
-from pipeline.core.texts import MAP_VARIANTS, answer, thought_lines
+from pipeline.core.texts import answer, thought_lines
+from pipeline.core.variants import MAP_VARIANTS
 from pipeline.core.world import MOVES, World, step
 
 _HEADERS = ("Thought:", "Backtrack:", "Plan:", "Action:")

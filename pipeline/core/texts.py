@@ -4,51 +4,14 @@ from __future__ import annotations
 
 import random
 from functools import lru_cache, cache
-from typing import Literal, NamedTuple, get_args
 
+from pipeline.core.variants import DIRECTIONS, MAP_VARIANTS, VARIANTS, check, check_choice
 from pipeline.core.world import MOVES, Cell, World, move_between, step
 
-Direction = Literal["fwd", "bwd"]
-Mode = Literal["optimal", "reachable"]
-Baseline = Literal["none", "cot", "dfs"]
 # What a model is prompted with: the paper's three turns (instruction, "OK", task), or the task turn alone.
 # The instruction is the same English text in every conversation: a model trained from scratch learns
 # nothing from it, yet pays for its ~155 tokens in every step; pretrained models keep the paper's prompt.
-Prompt = Literal["paper", "task"]
-
-DIRECTIONS: tuple[str, ...] = get_args(Direction)
-MODES: tuple[str, ...] = get_args(Mode)
-BASELINES: tuple[str, ...] = get_args(Baseline)
-PROMPTS: tuple[str, ...] = get_args(Prompt)
-
-
-class MapSwitches(NamedTuple):
-    """The switches a cognitive-map variant is made of: the three of SPEC 3's table, and ``named``
-    (not in the paper), which writes ``From (x, y):`` before the neighbours of each expanded state."""
-
-    all_moves: bool
-    marking: bool
-    backtrack: bool
-    named: bool = False
-
-
-# The paper's variant table, in its row order. `marking` is meaningless without all-moves: off there.
-PAPER_MAP_VARIANTS: dict[str, MapSwitches] = {
-    "marking-deadend": MapSwitches(all_moves=True, marking=True, backtrack=True),
-    "no-marking": MapSwitches(all_moves=True, marking=False, backtrack=True),
-    "no-backtrack": MapSwitches(all_moves=True, marking=True, backtrack=False),
-    "no-marking-no-backtrack": MapSwitches(all_moves=True, marking=False, backtrack=False),
-    "no-all": MapSwitches(all_moves=False, marking=False, backtrack=True),
-    "no-all-no-backtrack": MapSwitches(all_moves=False, marking=False, backtrack=False),
-}
-# Beyond the paper: each variant with its expanded states named (`<variant>-named`).
-NAMED_SUFFIX = "-named"
-MAP_VARIANTS: dict[str, MapSwitches] = {
-    **PAPER_MAP_VARIANTS,
-    **{name + NAMED_SUFFIX: switches._replace(named=True) for name, switches in PAPER_MAP_VARIANTS.items()},
-}
-PAPER_VARIANTS: tuple[str, ...] = tuple(PAPER_MAP_VARIANTS) + BASELINES
-VARIANTS: tuple[str, ...] = tuple(MAP_VARIANTS) + BASELINES
+PROMPTS: tuple[str, ...] = ("paper", "task")
 
 INSTRUCTION = (
     "You are given a rectangular gridworld, where you can move up, down, left, or right as long as each of "
@@ -68,12 +31,6 @@ _LABELS: dict[str, tuple[str, ...]] = {
     "fwd": tuple(MOVES),
     "bwd": tuple(_OPPOSITE[m] for m in MOVES),
 }
-
-
-def check_choice(name: str, value: object, allowed: tuple[str, ...]) -> None:
-    """Raise ValueError naming `value` and the allowed ones unless `value` is one of them."""
-    if value not in allowed:
-        raise ValueError(f"unknown {name} {value!r}; allowed: {', '.join(allowed)}")
 
 
 @lru_cache(maxsize=4096)
@@ -255,17 +212,9 @@ def _moves(world: World, variant: str, seed: int) -> list[str]:
     return dfs_moves(world, seed) if variant == "dfs" else world.optimal_moves()
 
 
-def _check(direction: str, variant: str, mode: str) -> None:
-    check_choice("direction", direction, DIRECTIONS)
-    check_choice("variant", variant, VARIANTS)
-    check_choice("mode", mode, MODES)
-    if variant == "dfs" and mode != "reachable":
-        raise ValueError(f"variant 'dfs' is reachable-only; allowed modes for it: reachable, got {mode!r}")
-
-
 def answer(world: World, direction: str, variant: str, mode: str, seed: int = 0) -> str:
     """The first gpt answer: the Thought section, then `Plan:` and all moves, or `Action:` and the first."""
-    _check(direction, variant, mode)
+    check(direction, variant, mode)
     return _answer(world, direction, variant, mode, _moves(world, variant, seed))
 
 
@@ -278,7 +227,7 @@ def conversation(
     world: World, direction: str, variant: str, mode: str, seed: int = 0, prompt: str = "paper"
 ) -> list[dict[str, str]]:
     """The whole training conversation (SPEC 2): prompt, first answer and, when reachable, the walk."""
-    _check(direction, variant, mode)
+    check(direction, variant, mode)
     moves = _moves(world, variant, seed)
     turns = prompt_turns(world, prompt)
     turns.append({"from": "gpt", "value": _answer(world, direction, variant, mode, moves)})

@@ -1,6 +1,6 @@
 """Turning ShareGPT conversations into token ids: the one place training and decoding agree on.
 
-A conversation is encoded turn by turn: ``[bos] + (prefix(role) + value + turn_end)*``. Each piece is
+A conversation is encoded turn by turn: ``[bos] + (prefix(role) + value + end(role))*``. Each piece is
 encoded on its own, so the ids of a prefix of the conversation are exactly a prefix of the ids of the whole:
 a decoder can append the next observation to a cached sequence without re-encoding the history.
 Loss targets are the gpt values and their ``turn_end`` token(s); everything else is context.
@@ -8,8 +8,10 @@ Loss targets are the gpt values and their ``turn_end`` token(s); everything else
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
-from typing import Protocol, Sequence
+from pathlib import Path
+from typing import Optional, Protocol, Sequence
 
 IGNORE_INDEX = -100
 
@@ -22,21 +24,34 @@ class TextTokenizer(Protocol):
     def decode(self, ids: Sequence[int], skip_special_tokens: bool = ...) -> str: ...
 
 
-@dataclass(frozen=True)
+@dataclass
 class ChatFormat:
-    """Role markers around each turn. ``bos`` is prepended once (empty: none)."""
+    """Role markers around each turn. ``bos`` is prepended once (empty: none). ``turn_end`` ends a gpt turn,
+    and a human turn too unless ``human_end`` says otherwise; ``first_human_prefix`` (when set) opens the
+    first human turn instead of ``human_prefix``. A decoder stops a gpt turn at ``stop`` (default: the whole
+    ``turn_end``), and closes it with the rest of ``turn_end`` before the next human turn."""
 
     human_prefix: str = "<human>"
     gpt_prefix: str = "<gpt>"
     turn_end: str = "</s>"
     bos: str = "<s>"
+    first_human_prefix: Optional[str] = None
+    human_end: Optional[str] = None
+    stop: Optional[str] = None
 
-    def prefix(self, role: str) -> str:
+    def prefix(self, role: str, first: bool = False) -> str:
         if role == "human":
-            return self.human_prefix
+            return self.first_human_prefix if first and self.first_human_prefix is not None else self.human_prefix
         if role == "gpt":
             return self.gpt_prefix
         raise ValueError(f"unknown turn role {role!r}; allowed: 'human', 'gpt'")
+
+    def end(self, role: str) -> str:
+        return self.human_end if role == "human" and self.human_end is not None else self.turn_end
+
+    @property
+    def stop_text(self) -> str:
+        return self.turn_end if self.stop is None else self.stop
 
 
 # The word-level tokenizer's format; paper-scale models name their own in the model config.
@@ -47,10 +62,13 @@ def _encode(tokenizer: TextTokenizer, text: str) -> list[int]:
     return tokenizer.encode(text, add_special_tokens=False) if text else []
 
 
-def encode_turn(tokenizer: TextTokenizer, fmt: ChatFormat, role: str, value: str) -> tuple[list[int], list[int]]:
-    """Ids of one turn and its labels (targets only on a gpt turn's value and end marker)."""
-    prefix = _encode(tokenizer, fmt.prefix(role))
-    body = _encode(tokenizer, value) + _encode(tokenizer, fmt.turn_end)
+def encode_turn(tokenizer: TextTokenizer, fmt: ChatFormat, role: str, value: str,
+                first: bool = False) -> tuple[list[int], list[int]]:
+    """Ids of one turn and its labels: targets only on a gpt turn's value and its whole turn end (as the
+    paper's FastChat fork trains: the ``<|end_of_text|><|begin_of_text|>`` after an answer is a target there
+    too). ``first``: the conversation's first turn."""
+    prefix = _encode(tokenizer, fmt.prefix(role, first))
+    body = _encode(tokenizer, value) + _encode(tokenizer, fmt.end(role))
     labels = [IGNORE_INDEX] * len(prefix) + (body if role == "gpt" else [IGNORE_INDEX] * len(body))
     return prefix + body, labels
 
@@ -61,11 +79,19 @@ def encode_conversation(
     """Token ids of a whole conversation and labels with loss on gpt turns only."""
     ids = _encode(tokenizer, fmt.bos)
     labels = [IGNORE_INDEX] * len(ids)
-    for turn in turns:
-        turn_ids, turn_labels = encode_turn(tokenizer, fmt, turn["from"], turn["value"])
+    for index, turn in enumerate(turns):
+        turn_ids, turn_labels = encode_turn(tokenizer, fmt, turn["from"], turn["value"], first=index == 0)
         ids += turn_ids
         labels += turn_labels
     return ids, labels
+
+
+def render_conversation(fmt: ChatFormat, turns: Sequence[dict], generation_prompt: bool = False) -> str:
+    """The text `encode_conversation` encodes (and, with ``generation_prompt``, the gpt prefix after it)."""
+    parts = [fmt.bos]
+    for index, turn in enumerate(turns):
+        parts += [fmt.prefix(turn["from"], index == 0), turn["value"], fmt.end(turn["from"])]
+    return "".join(parts) + (fmt.gpt_prefix if generation_prompt else "")
 
 
 def encode_prompt(tokenizer: TextTokenizer, fmt: ChatFormat, turns: Sequence[dict]) -> list[int]:
@@ -81,5 +107,31 @@ def encode_followup(tokenizer: TextTokenizer, fmt: ChatFormat, human_value: str)
 
 
 def turn_end_ids(tokenizer: TextTokenizer, fmt: ChatFormat) -> list[int]:
-    """The ids that end a turn; a decoder stops a sequence when it has produced them."""
+    """The ids that end a gpt turn (what closes an answer cut at its cap)."""
     return _encode(tokenizer, fmt.turn_end)
+
+
+def stop_ids(tokenizer: TextTokenizer, fmt: ChatFormat) -> list[int]:
+    """The ids a decoder stops a gpt turn at: the start of `turn_end_ids` (all of it unless ``fmt.stop``)."""
+    end = turn_end_ids(tokenizer, fmt)
+    if fmt.stop is None:
+        return end
+    stop = _encode(tokenizer, fmt.stop)
+    if not stop or end[:len(stop)] != stop:
+        raise ValueError(f"chat format stop={fmt.stop!r} must encode to the first ids of turn_end={fmt.turn_end!r}")
+    return stop
+
+
+def read_conversations(path: str | Path) -> list[list[dict]]:
+    """Conversations from JSONL, in order: each line a list of turns or an object with a ``conversations`` list."""
+    conversations = []
+    with open(path) as lines:
+        for number, line in enumerate(lines, 1):
+            if not line.strip():
+                continue
+            record = json.loads(line)
+            turns = record["conversations"] if isinstance(record, dict) else record
+            if not isinstance(turns, list):
+                raise ValueError(f"{path}:{number}: expected a list of turns or {{'conversations': [...]}}")
+            conversations.append(turns)
+    return conversations

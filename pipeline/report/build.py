@@ -27,7 +27,8 @@ from typing import Callable, Iterable
 import pandas as pd
 from hydra.experimental.callback import Callback
 
-from pipeline.core import texts
+from pipeline.core.episodes import EPISODE_FIELDS
+from pipeline.core.variants import DIRECTIONS, MAP_VARIANTS, MODES, PAPER_ROWS, REFERENCE, SUCCESS_TABLE_ROWS, VARIANTS
 from pipeline.workflow.data_build import TEST_WORLDS
 from pipeline.core.map_errors import STEP_BUCKETS, category, step_bucket
 from pipeline.core.world import load_worlds
@@ -35,11 +36,9 @@ from pipeline.report.stats import mcnemar, seeded_rate
 from pipeline.workflow.tracking import (
     CURVE_EPISODES_ARTIFACT,
     CURVE_METRIC,
-    EPISODE_FIELDS,
     EPISODES_ARTIFACT,
     JOB_KIND,
     KIND_TAG,
-    PAPER_ROWS,
     REPORT_KIND,
     TRAIN_MAX_TAGS,
     default_tracking_uri,
@@ -48,11 +47,7 @@ from pipeline.workflow.tracking import (
 
 log = logging.getLogger(__name__)
 
-MODES = ("optimal", "reachable")
-DIRECTIONS = ("fwd", "bwd")
-MAP_VARIANTS = tuple(texts.MAP_VARIANTS)
-VARIANTS = texts.VARIANTS
-REFERENCE_VARIANT = "marking-deadend"
+REFERENCE_VARIANT = REFERENCE
 LOSS_METRIC = "loss"
 
 # SPEC 5: the paper's success rates, (mode, variant) -> (FWD, BWD). NONE is direction-independent
@@ -77,18 +72,14 @@ PAPER_SUCCESS: dict[tuple[str, str], tuple[float, float]] = {
     ("reachable", "dfs"): (0.945, 0.945),
 }
 
-# Tables 1, 7 and 8: rows (variants) by columns (mode x direction).
-SUCCESS_TABLES = {
-    "table1": ("Table 1: success rate, baselines and the cognitive map",
-               ("none", "cot", "marking-deadend", "no-marking")),
-    "table7": ("Table 7: success rate without ALL (only new neighbours listed)",
-               ("no-all-no-backtrack", "no-all")),
-    "table8": ("Table 8: success rate without BACKTRACK",
-               ("no-marking-no-backtrack", "no-backtrack")),
-    "table_named": ("Beyond the paper: each expanded state named (`From (x, y):` before its neighbours)",
-                    ("marking-deadend", "marking-deadend" + texts.NAMED_SUFFIX,
-                     "no-marking", "no-marking" + texts.NAMED_SUFFIX)),
+# Tables 1, 7 and 8 (and ours): title and rows (variants; core.variants.SUCCESS_TABLE_ROWS) by mode x direction.
+_TITLES = {
+    "table1": "Table 1: success rate, baselines and the cognitive map",
+    "table7": "Table 7: success rate without ALL (only new neighbours listed)",
+    "table8": "Table 8: success rate without BACKTRACK",
+    "table_named": "Beyond the paper: each expanded state named (`From (x, y):` before its neighbours)",
 }
+SUCCESS_TABLES = {key: (_TITLES[key], rows) for key, rows in SUCCESS_TABLE_ROWS.items()}
 
 # Every table is also split by these subsets of the test worlds (name -> episode filter).
 SUBSETS: dict[str, Callable[[pd.DataFrame], pd.Series]] = {

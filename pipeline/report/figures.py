@@ -16,10 +16,9 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 from matplotlib.ticker import MaxNLocator
 
-from pipeline.core.texts import VARIANTS
-from pipeline.workflow.tracking import PAPER_ROWS, TRAIN_MAX_TAGS
+from pipeline.core.variants import PAPER_ROWS, VARIANTS
+from pipeline.workflow.tracking import TRAIN_MAX_TAGS
 
-VARIANT_ORDER = VARIANTS
 HEATMAP_METRICS = {  # name -> (title, outcome it counts or None for success, modes it applies to)
     "success": ("SUCCESS rate", None, ("optimal", "reachable")),
     "deadend": ("DEADEND rate", "deadend", ("reachable",)),
@@ -31,7 +30,7 @@ DPI = 110
 
 def _variants(frame: pd.DataFrame) -> list[str]:
     present = set(frame["variant"])
-    return [v for v in VARIANT_ORDER if v in present] + sorted(present - set(VARIANT_ORDER))
+    return [v for v in VARIANTS if v in present] + sorted(present - set(VARIANTS))
 
 
 def _direction_order(item: tuple[str, pd.DataFrame]) -> tuple[int, str]:

@@ -18,7 +18,8 @@ from typing import Sequence
 from pipeline.workflow.data_build import SUMMARY, TEST_WORLDS
 from pipeline.core.environment import GridEnv
 from pipeline.core.scoring import _as_text, first_difference
-from pipeline.core.texts import VARIANTS, answer, first_human_text
+from pipeline.core.texts import answer, first_human_text
+from pipeline.core.variants import VARIANTS
 from pipeline.workflow.tracking import EPISODES_ARTIFACT, JOB_KIND, KIND_TAG, default_tracking_uri, step_run_tag
 from pipeline.core.world import World, load_worlds
 
@@ -44,7 +45,7 @@ def side_by_side(produced: str, golden: str) -> list[str]:
 
 def reachable_turns(world: World, moves: Sequence[str], answers: Sequence[str]) -> list[str]:
     """Each observation the model saw and its answer, replayed through the environment."""
-    env, lines = GridEnv(world, max_steps=max(len(answers), 1)), []
+    env, lines = GridEnv(world, max_moves=max(len(answers), 1)), []
     env.reset()
     observation = "(the task prompt above)"
     for turn, text in enumerate(answers, 1):

@@ -10,16 +10,21 @@ from __future__ import annotations
 import hashlib
 import json
 import statistics
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Iterable, Optional, Sequence
 
+import mlflow
 from tqdm import tqdm
 
 from pipeline.core.generation import GeneratorConfig, generate_worlds, world_stats
-from pipeline.lm.tokenizer import count_pieces
-from pipeline.core.world import World, load_worlds, save_worlds
 from pipeline.core.texts import conversation
+from pipeline.core.variants import text_direction
+from pipeline.core.world import World, load_worlds, save_worlds
+from pipeline.lm.tokenizer import count_pieces
+from pipeline.workflow.steps import StepRun
+from pipeline.workflow.tracking import log_dataset, log_settings
+from pipeline.core.checks import require
 
 TRAIN_WORLDS, TEST_WORLDS = "worlds/train.jsonl", "worlds/test.jsonl"
 TRAIN_CONVERSATIONS, TEST_CONVERSATIONS = "conversations/train.jsonl", "conversations/test.jsonl"
@@ -27,8 +32,47 @@ TEST_STATS = "stats/test_worlds.jsonl"
 SUMMARY = "stats/summary.json"
 
 
+@dataclass
+class DataSettings:
+    """The worlds of a job: the train and test splits' sizes, obstacles and counts (the paper's sampling
+    by default). ``frame`` bounds every coordinate; ``test_file`` takes the test split from a file of worlds
+    in the paper's schema instead of generating it. The defaults are the base of the ``conf/data`` presets."""
+
+    train_size_x: list[int] = field(default_factory=lambda: [2, 10])
+    train_size_y: list[int] = field(default_factory=lambda: [2, 10])
+    test_size_x: list[int] = field(default_factory=lambda: [2, 20])
+    test_size_y: list[int] = field(default_factory=lambda: [2, 20])
+    frame: int = 20
+    p_pit: list[float] = field(default_factory=lambda: [0.1, 0.5])
+    n_train: int = 50_000
+    n_test: int = 3_000
+    test_file: Optional[str] = None
+    seed: int = 0
+    workers: int = 2
+
+    def __post_init__(self) -> None:
+        for name in ("train_size_x", "train_size_y", "test_size_x", "test_size_y"):
+            value = list(getattr(self, name))
+            require(len(value) == 2, name, value, "[min, max]")
+            require(2 <= value[0] <= value[1] <= self.frame, name, value, f"2 <= min <= max <= frame ({self.frame})")
+        p_pit = list(self.p_pit)
+        require(len(p_pit) == 2 and 0.0 <= p_pit[0] <= p_pit[1] <= 1.0, "p_pit", p_pit, "[min, max] with 0 <= min <= max <= 1")
+        for name in ("n_train", "n_test", "workers"):
+            require(getattr(self, name) >= 1, name, getattr(self, name), "at least 1")
+
+    @property
+    def train_max(self) -> tuple[int, int]:
+        """The largest train world sides (X, Y): test worlds within both are interpolated."""
+        return max(self.train_size_x), max(self.train_size_y)
+
+    def generator(self, split: str) -> GeneratorConfig:
+        """The generator settings of the ``train`` or ``test`` split."""
+        size_x, size_y = (self.train_size_x, self.train_size_y) if split == "train" else (self.test_size_x, self.test_size_y)
+        return GeneratorConfig(size_x=tuple(size_x), size_y=tuple(size_y), frame=self.frame, p_pit=tuple(self.p_pit))
+
+
 @dataclass(frozen=True)
-class TextSpec:
+class TextSettings:
     """What decides the texts of a dataset besides its worlds. ``direction`` is None where it has no effect."""
 
     direction: str | None
@@ -38,16 +82,12 @@ class TextSpec:
     prompt: str = "paper"   # texts.PROMPTS: the paper's three prompt turns, or the task turn alone
 
     @classmethod
-    def of(cls, direction: str, variant: str, mode: str, seed: int = 0, prompt: str = "paper") -> "TextSpec":
-        # NONE and DFS texts do not depend on the direction: both directions share one dataset (and model).
-        return cls(None if variant in ("none", "dfs") else direction, variant, mode, seed, prompt)
+    def of(cls, direction: str, variant: str, mode: str, seed: int = 0, prompt: str = "paper") -> "TextSettings":
+        # Direction-free variants (NONE, DFS): both directions share one dataset (and model).
+        return cls(text_direction(direction, variant), variant, mode, seed, prompt)
 
 
-def generator_config(size_x: Sequence[int], size_y: Sequence[int], frame: int, p_pit: Sequence[float]) -> GeneratorConfig:
-    return GeneratorConfig(size_x=tuple(size_x), size_y=tuple(size_y), frame=frame, p_pit=tuple(p_pit))
-
-
-def build_splits(data) -> tuple[list[World], list[World]]:
+def build_splits(data: DataSettings) -> tuple[list[World], list[World]]:
     """(train, test) worlds for a data config: test generated (or the given file), train disjoint from it."""
     if data.test_file:
         source = Path(data.test_file).expanduser()
@@ -65,11 +105,9 @@ def build_splits(data) -> tuple[list[World], list[World]]:
             )
         test = test[: data.n_test]
     else:
-        test_cfg = generator_config(data.test_size_x, data.test_size_y, data.frame, data.p_pit)
-        test = generate_worlds(data.n_test, data.seed, test_cfg, split="test", workers=data.workers)
-    train_cfg = generator_config(data.train_size_x, data.train_size_y, data.frame, data.p_pit)
+        test = generate_worlds(data.n_test, data.seed, data.generator("test"), split="test", workers=data.workers)
     exclude = frozenset(world.key() for world in test)
-    train = generate_worlds(data.n_train, data.seed, train_cfg, split="train", exclude=exclude, workers=data.workers)
+    train = generate_worlds(data.n_train, data.seed, data.generator("train"), split="train", exclude=exclude, workers=data.workers)
     return train, test
 
 
@@ -80,7 +118,7 @@ def _write_jsonl(path: Path, rows: Iterable[dict]) -> None:
             handle.write(json.dumps(row, separators=(", ", ": ")) + "\n")
 
 
-def _conversations(worlds: list[World], spec: TextSpec, desc: str) -> Iterable[dict]:
+def _conversations(worlds: list[World], spec: TextSettings, desc: str) -> Iterable[dict]:
     direction = spec.direction or "fwd"
     for index, world in enumerate(tqdm(worlds, desc=desc, unit="world", leave=False)):
         # Each world's DFS walk gets its own seed, so the walks do not depend on the split's order.
@@ -93,7 +131,7 @@ def _summary(values: list[int]) -> dict:
     return {"mean": statistics.fmean(values), "max": max(values), "min": min(values)} if values else {}
 
 
-def write_dataset(out_dir: str | Path, train: list[World], test: list[World], spec: TextSpec, train_max: tuple[int, int]) -> dict:
+def write_dataset(out_dir: str | Path, train: list[World], test: list[World], spec: TextSettings, train_max: tuple[int, int]) -> dict:
     """Write worlds, conversations and stats under ``out_dir``; return the summary (also written)."""
     out = Path(out_dir)
     (out / "worlds").mkdir(parents=True, exist_ok=True)
@@ -136,16 +174,31 @@ def dataset_sha256(out_dir: str | Path) -> str:
     return digest.hexdigest()
 
 
-def read_conversations(path: str | Path) -> list[list[dict]]:
-    """Conversations from JSONL, in order: each line a list of turns or an object with a ``conversations`` list."""
-    conversations = []
-    with open(path) as lines:
-        for number, line in enumerate(lines, 1):
-            if not line.strip():
-                continue
-            record = json.loads(line)
-            turns = record["conversations"] if isinstance(record, dict) else record
-            if not isinstance(turns, list):
-                raise ValueError(f"{path}:{number}: expected a list of turns or {{'conversations': [...]}}")
-            conversations.append(turns)
-    return conversations
+# ---------------------------------------------------------------------------------------------------- the step
+def run_data_build(settings: DataSettings, texts: TextSettings, step_dir: Path) -> None:
+    """The data-build step's body (inside its MLflow run): build, write and log the dataset."""
+    log_settings(asdict(settings), "data")
+    train, test = build_splits(settings)
+    out = step_dir / "dataset"
+    summary = write_dataset(out, train, test, texts, settings.train_max)
+    mlflow.set_tag("dataset_sha256", summary["sha256"])
+    mlflow.log_metrics({
+        "n_train": summary["n_train"], "n_test": summary["n_test"],
+        "train_tokens_mean": summary["train_tokens"]["mean"], "train_tokens_max": summary["train_tokens"]["max"],
+        "test_path_length_mean": summary["test_path_length"]["mean"],
+        "test_up_right_only": summary["test_up_right_only"], "test_interpolated": summary["test_interpolated"],
+    })
+    mlflow.log_artifacts(str(out))
+    base = mlflow.get_artifact_uri()
+    for artifact, split in ((TRAIN_CONVERSATIONS, "train"), (TEST_CONVERSATIONS, "test")):
+        log_dataset(f"{base}/{artifact}", out / artifact, dataset_name(texts, split), split)
+
+
+def dataset_name(texts: TextSettings, split: str) -> str:
+    return "-".join(p for p in (texts.direction, texts.variant, texts.mode, split) if p)
+
+
+def log_step_dataset(data: StepRun, texts: TextSettings, artifact: str, split: str, context: str) -> None:
+    """Log one of a data-build run's conversation files as a dataset input of the active run."""
+    uri = f"{mlflow.get_run(data.run_id).info.artifact_uri}/{artifact}"
+    log_dataset(uri, Path(data.artifact(artifact)), dataset_name(texts, split), context)

@@ -1,4 +1,5 @@
-"""eval: prompt a model with each test world, score what it does, and keep one record per episode.
+"""The eval step: prompt the finetuned model with each test world, score what it does, keep one record
+(`pipeline.core.episodes.Episode`) per episode, and log them with their metrics.
 
 Records are appended to a partial file as episodes finish, so an interrupted eval resumes from its
 completed episodes; the finished eval orders them by world index. Metrics are computed from the records
@@ -8,93 +9,43 @@ alone (the report recomputes its splits from the same records).
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Protocol, Sequence
+from typing import Optional
 
+import mlflow
 from tqdm import tqdm
 
-from pipeline.core.environment import Outcome
-from pipeline.core.map_errors import first_wrong_line
-from pipeline.core.scoring import score_optimal
+from pipeline.core.checks import SettingError, require
+from pipeline.core.episodes import metrics, optimal_episode, reachable_episode
 from pipeline.core.texts import prompt_turns
-from pipeline.core.world import World
-
-_STAT_FIELDS = ("size_x", "size_y", "optimal_length", "dead_ends", "up_right_only", "interpolated")
-
-
-class Decoder(Protocol):
-    """What eval needs of a decoding backend (pipeline.lm.decoding.hf.HFDecoder, pipeline.lm.decoding.vllm.VLLMDecoder)."""
-
-    def answer(self, prompts: list[list[dict]]) -> list: ...
-
-    def play(self, worlds: list[World], *, max_steps: int, on_episode=None, prompt: str = "paper") -> list: ...
+from pipeline.core.world import World, load_worlds
+from pipeline.lm.decoding import BACKENDS, Decoder, make_decoder
+from pipeline.lm.models import ModelSettings
+from pipeline.workflow.data_build import TEST_CONVERSATIONS, TEST_STATS, TEST_WORLDS, TextSettings, log_step_dataset
+from pipeline.workflow.steps import StepRun
+from pipeline.workflow.tracking import CHECKPOINTS_ARTIFACT, CURVE_EPISODES_ARTIFACT, CURVE_METRIC, EPISODES_ARTIFACT
 
 
-def make_decoder(cfg, model_dir: str) -> Decoder:
-    """The configured decoding backend over a finetuned model directory (safetensors, tokenizer, chat format)."""
-    from pipeline.lm.models import load_chat_format, load_model, load_tokenizer
+@dataclass
+class EvalSettings:
+    """How the eval step decodes and scores. ``max_moves``: a reachable episode ends MAX STEP after this many
+    moves. ``curve``: also evaluate each logged checkpoint on the first ``curve_worlds`` test worlds (the
+    paper's Figure 3). The defaults are the base of the ``conf/eval`` presets."""
 
-    fmt = load_chat_format(model_dir)
-    tokenizer = load_tokenizer(model_dir, trust_remote_code=cfg.model.trust_remote_code)
-    common = dict(batch_size=cfg.eval.batch_size, max_new_tokens=cfg.eval.max_new_tokens)
-    if cfg.eval.backend.value == "vllm":
-        from pipeline.lm.decoding.vllm import VLLMDecoder
+    n_worlds: Optional[int] = None      # the first n test worlds; null: all
+    backend: str = "hf"                 # hf | vllm
+    batch_size: int = 32
+    max_new_tokens: int = 4096
+    max_moves: int = 200
+    curve: bool = False
+    curve_worlds: int = 50
 
-        return VLLMDecoder(model_dir, tokenizer, fmt, dtype=cfg.model.dtype, **common)
-    import torch
-
-    from pipeline.lm.decoding.hf import HFDecoder
-
-    model = load_model(model_dir, dtype=cfg.model.dtype, trust_remote_code=cfg.model.trust_remote_code,
-                       attn_implementation=cfg.model.attn_implementation)
-    # Decode where the Trainer trained: on the GPU when there is one.
-    return HFDecoder(model.to("cuda" if torch.cuda.is_available() else "cpu"), tokenizer, fmt, **common)
-
-
-def _base_record(index: int, stats: dict) -> dict:
-    return {"world_index": index, **{key: stats[key] for key in _STAT_FIELDS}}
-
-
-def optimal_record(index: int, world: World, stats: dict, text: str, error: str | None, direction: str, variant: str) -> dict:
-    """Score one single-turn answer (SPEC 4, graded)."""
-    record = _base_record(index, stats)
-    if error is not None:
-        return {**record, "success": False, "outcome": "error", "n_moves": 0, "moves": [], "parsed": False,
-                "valid": False, "reaches_goal": False, "map_exact": None, "map_first_error": None,
-                "first_wrong_line": None, "answers": [text], "error": error}
-    score = score_optimal(world, text, direction, variant)
-    wrong = first_wrong_line(world, direction, variant, text)
-    moves = list(score.moves)
-    return {
-        **record,
-        "success": bool(score.optimal),
-        "outcome": "success" if score.optimal else "fail",
-        "n_moves": len(moves),
-        "moves": moves,
-        "parsed": score.parsed,
-        "valid": score.valid,
-        "reaches_goal": score.reaches_goal,
-        "map_exact": score.map_exact,
-        "map_first_error": score.map_first_error,
-        "first_wrong_line": wrong.to_dict() if wrong is not None else None,
-        "answers": [text],
-        "error": None,
-    }
-
-
-def reachable_record(index: int, stats: dict, outcome: str | None, moves: Sequence[str], error: str | None,
-                     answers: Sequence[str] = ()) -> dict:
-    """Record one multi-turn episode (SPEC 4 outcomes) with the model's answer of every turn."""
-    return {
-        **_base_record(index, stats),
-        "success": outcome == Outcome.SUCCESS.value and error is None,
-        "outcome": "error" if error is not None else outcome,
-        "n_moves": len(moves),
-        "moves": list(moves),
-        "parsed": None, "valid": None, "reaches_goal": None, "map_exact": None, "map_first_error": None,
-        "first_wrong_line": None, "answers": list(answers),
-        "error": error,
-    }
+    def __post_init__(self) -> None:
+        require(self.backend in BACKENDS, "backend", self.backend, f"one of {', '.join(BACKENDS)}")
+        require(self.n_worlds is None or self.n_worlds >= 1, "n_worlds", self.n_worlds, "at least 1, or null for all")
+        for name in ("batch_size", "max_new_tokens", "max_moves", "curve_worlds"):
+            require(getattr(self, name) >= 1, name, getattr(self, name), "at least 1")
 
 
 class PartialRecords:
@@ -137,7 +88,7 @@ def evaluate(
     mode: str,
     direction: str,
     variant: str,
-    max_steps: int,
+    max_moves: int,
     partial_path: str | Path,
     chunk_size: int = 64,
     prompt: str = "paper",
@@ -157,44 +108,64 @@ def evaluate(
             if not chunk:
                 continue
             if mode == "optimal":
-                generations = decoder.answer([prompt_turns(worlds[i], prompt) for i in chunk])
+                generations = decoder.generate([prompt_turns(worlds[i], prompt) for i in chunk])
                 for i, generation in zip(chunk, generations):
-                    partial.add(optimal_record(i, worlds[i], stats[i], generation.text, generation.error, direction, variant))
+                    partial.add(optimal_episode(i, worlds[i], stats[i], generation.text, generation.error, direction, variant).to_dict())
                     progress.update()
             else:
                 def finished(episode, chunk=chunk) -> None:
                     i = chunk[episode.world_index]
                     outcome = episode.outcome.value if episode.outcome is not None else None
-                    partial.add(reachable_record(i, stats[i], outcome, episode.moves, episode.error, episode.answers))
+                    partial.add(reachable_episode(i, stats[i], outcome, episode.moves, episode.error, episode.answers).to_dict())
                     progress.update()
 
-                decoder.play([worlds[i] for i in chunk], max_steps=max_steps, on_episode=finished, prompt=prompt)
+                decoder.play([worlds[i] for i in chunk], max_moves=max_moves, on_episode=finished, prompt=prompt)
     finally:
         progress.close()
         partial.close()
     return partial.ordered()
 
 
-def _rate(records: Iterable[dict], predicate) -> float | None:
-    records = list(records)
-    return sum(1 for r in records if predicate(r)) / len(records) if records else None
+def run_eval(settings: EvalSettings, model: ModelSettings, texts: TextSettings, data: StepRun, finetune: StepRun,
+             step_dir: Path) -> None:
+    """The eval step's body (inside its MLflow run): decode, score, and log episodes and metrics."""
+    log_step_dataset(data, texts, TEST_CONVERSATIONS, "test", "evaluation")
+    worlds = load_worlds(data.artifact(TEST_WORLDS))
+    stats = [json.loads(line) for line in Path(data.artifact(TEST_STATS)).read_text().splitlines()]
+    n = settings.n_worlds or len(worlds)
+    if n > len(worlds):
+        raise SettingError(f"eval.n_worlds={n} but the test split has {len(worlds)} worlds; allowed: 1..{len(worlds)} or null")
+    records = _evaluate_model(settings, model, texts, finetune.artifact("model"), worlds[:n], stats[:n],
+                              step_dir / "episodes.partial.jsonl")
+    episodes = step_dir / EPISODES_ARTIFACT
+    episodes.write_text("".join(json.dumps(record) + "\n" for record in records))
+    mlflow.log_artifact(str(episodes))
+    mlflow.log_metrics(metrics(records))
+    if settings.curve:
+        _evaluate_curve(settings, model, texts, finetune, worlds, stats, step_dir)
 
 
-def metrics(records: list[dict]) -> dict[str, float]:
-    """The eval run's metrics (names in tracking.EVAL_METRICS); rates over empty subsets are left out."""
-    interp = [r for r in records if r["interpolated"]]
-    extrap = [r for r in records if not r["interpolated"]]
-    values = {
-        "n_episodes": float(len(records)),
-        "success_rate": _rate(records, lambda r: r["success"]),
-        "success_rate_interp": _rate(interp, lambda r: r["success"]),
-        "success_rate_extrap": _rate(extrap, lambda r: r["success"]),
-        "rate_error": _rate(records, lambda r: r["outcome"] == "error"),
-    }
-    for outcome in (Outcome.DEADEND, Outcome.MAX_STEP, Outcome.INVALID):
-        values[f"rate_{outcome.value}"] = _rate(records, lambda r, o=outcome.value: r["outcome"] == o)
-    for field in ("parsed", "valid", "reaches_goal", "map_exact"):
-        graded = [r for r in records if r[field] is not None]
-        if graded:
-            values[f"rate_{field}"] = _rate(graded, lambda r, f=field: bool(r[f]))
-    return {key: value for key, value in values.items() if value is not None}
+def _evaluate_model(settings: EvalSettings, model: ModelSettings, texts: TextSettings, model_dir: str,
+                    worlds: list[World], stats: list[dict], partial_path: Path) -> list[dict]:
+    decoder = make_decoder(model_dir, backend=settings.backend, batch_size=settings.batch_size,
+                           max_new_tokens=settings.max_new_tokens, dtype=model.dtype,
+                           trust_remote_code=model.trust_remote_code, attn_implementation=model.attn_implementation)
+    return evaluate(decoder, worlds, stats, mode=texts.mode, direction=texts.direction or "fwd", variant=texts.variant,
+                    max_moves=settings.max_moves, partial_path=partial_path, prompt=texts.prompt)
+
+
+def _evaluate_curve(settings: EvalSettings, model: ModelSettings, texts: TextSettings, finetune: StepRun,
+                    worlds: list[World], stats: list[dict], step_dir: Path) -> None:
+    """Figure 3: success of every logged checkpoint on the first ``curve_worlds`` test worlds."""
+    entries = mlflow.artifacts.list_artifacts(run_id=finetune.run_id, artifact_path=CHECKPOINTS_ARTIFACT)
+    train_steps = sorted(int(Path(entry.path).name.split("-")[-1]) for entry in entries if entry.is_dir)
+    n = min(settings.curve_worlds, len(worlds))
+    for train_step in train_steps:
+        model_dir = finetune.artifact(f"{CHECKPOINTS_ARTIFACT}/step-{train_step}")
+        records = _evaluate_model(settings, model, texts, model_dir, worlds[:n], stats[:n],
+                                  step_dir / f"curve-{train_step}.partial.jsonl")
+        mlflow.log_metric(CURVE_METRIC, metrics(records)["success_rate"], step=train_step)
+        episodes = step_dir / "curve" / f"step-{train_step}.jsonl"
+        episodes.parent.mkdir(parents=True, exist_ok=True)
+        episodes.write_text("".join(json.dumps(record) + "\n" for record in records))
+        mlflow.log_artifact(str(episodes), CURVE_EPISODES_ARTIFACT)

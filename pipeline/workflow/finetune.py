@@ -1,57 +1,68 @@
-"""The finetune step's body: the model and tokenizer the config names, trained in-process or, for
-distributed (FSDP) training, under `accelerate launch` with a resolved spec and an explicit output dir."""
+"""The finetune step: the model and tokenizer the settings name, trained through the one training entry
+point (`pipeline.lm.training.entry`) in-process or, for distributed (FSDP) training, under ``accelerate
+launch``; then the model logged to MLflow (artifacts and a logged model) with the run's metrics."""
 
 from __future__ import annotations
 
 import json
 import logging
 import shutil
-import subprocess
-import sys
 from dataclasses import asdict
 from pathlib import Path
 
 import mlflow
-from omegaconf import DictConfig, OmegaConf
 
-from pipeline.lm.chat import ChatFormat
-from pipeline.lm.training.trainer import CHECKPOINTS_DIR, RESULT_FILE, TrainResult, TrainSettings, finetune
-from pipeline.lm.models import build_scratch_model, load_model, load_tokenizer
-from pipeline.lm.tokenizer import build_word_tokenizer
+from pipeline.lm.chat import read_conversations
+from pipeline.lm.models import ModelSettings, make_tokenizer
+from pipeline.lm.training.entry import TrainRequest, launch, train
+from pipeline.lm.training.settings import TrainSettings
+from pipeline.lm.training.trainer import CHECKPOINTS_DIR, TrainResult
+from pipeline.workflow.data_build import TRAIN_CONVERSATIONS, TextSettings, log_step_dataset
+from pipeline.workflow.steps import StepRun
+from pipeline.workflow.tracking import CHECKPOINTS_ARTIFACT, log_settings
 
 log = logging.getLogger(__name__)
 
 # The Trainer writes a checkpoint's files in turn and its trainer_state.json last.
 _CHECKPOINT_DONE = "trainer_state.json"
 
-# TrainConfig keys that steer the step rather than the Trainer.
-_STEP_KEYS = ("accelerate_config", "log_checkpoints")
+
+def run_finetune_step(model: ModelSettings, settings: TrainSettings, seed: int, frame: int, texts: TextSettings,
+                      data: StepRun, step_dir: Path) -> None:
+    """The finetune step's body (inside its MLflow run): train, then log metrics, the model and checkpoints."""
+    # Prefixed: transformers' MLflowCallback logs the Trainer's own arguments under their plain names.
+    log_settings(model.to_dict(), "model")
+    log_settings(settings.to_dict(), "train")
+    train_file = data.artifact(TRAIN_CONVERSATIONS)
+    log_step_dataset(data, texts, TRAIN_CONVERSATIONS, "train", "training")
+    result = run_training(model, settings, seed, frame, train_file, step_dir)
+    mlflow.log_param("model.parameters", result.parameters)
+    mlflow.log_metrics(result_metrics(result))
+    if result.token_accuracy is not None:
+        mlflow.log_metric("eval_token_accuracy", result.token_accuracy, step=result.global_step)
+    mlflow.log_artifacts(result.model_dir, "model")
+    log_model(model, result.model_dir)
+    if settings.log_checkpoints:
+        mlflow.log_artifacts(str(_checkpoint_models(step_dir, Path(result.model_dir))), CHECKPOINTS_ARTIFACT)
 
 
-def train_settings(cfg: DictConfig) -> TrainSettings:
-    """TrainSettings from the job config (the job's seed seeds training)."""
-    values = OmegaConf.to_container(cfg.train, resolve=True, enum_to_str=True)
-    for key in _STEP_KEYS:
-        values.pop(key)
-    return TrainSettings.from_dict({**values, "seed": cfg.seed})
-
-
-def chat_format(cfg: DictConfig) -> ChatFormat:
-    return ChatFormat(**OmegaConf.to_container(cfg.model.chat_format, resolve=True))
-
-
-def _scratch_kwargs(cfg: DictConfig) -> dict:
-    model = cfg.model
-    return dict(hidden_size=model.hidden_size, num_layers=model.num_layers, num_heads=model.num_heads,
-                intermediate_size=model.intermediate_size, max_length=model.max_length,
-                attn_implementation=model.attn_implementation, seed=cfg.seed)
-
-
-def _tokenizer(cfg: DictConfig, conversations: list[list[dict]]):
-    if cfg.model.kind.value == "scratch":
-        texts = (turn["value"] for turns in conversations for turn in turns)
-        return build_word_tokenizer(texts, frame=cfg.data.frame)
-    return load_tokenizer(cfg.model.path, trust_remote_code=cfg.model.trust_remote_code)
+def run_training(model: ModelSettings, settings: TrainSettings, seed: int, frame: int, train_file: str,
+                 step_dir: Path) -> TrainResult:
+    """Train on the conversations at ``train_file`` into ``step_dir``, resuming from its last complete
+    checkpoint if an earlier run was interrupted."""
+    discard_incomplete_checkpoints(step_dir)
+    conversations = read_conversations(train_file)
+    tokenizer = make_tokenizer(model, (turn["value"] for turns in conversations for turn in turns), frame)
+    mlflow.log_param("model.vocab_size", len(tokenizer))
+    tokenizer_dir = step_dir / "tokenizer"
+    tokenizer.save_pretrained(str(tokenizer_dir))
+    request = TrainRequest(model=model, train=settings, seed=seed, data=str(train_file),
+                           tokenizer_dir=str(tokenizer_dir), output_dir=str(step_dir))
+    if settings.accelerate_config:
+        # Rank 0's MLflowCallback logs into this run: the processes find it through the environment.
+        return launch(request, env={"MLFLOW_TRACKING_URI": mlflow.get_tracking_uri(),
+                                    "MLFLOW_RUN_ID": mlflow.active_run().info.run_id})
+    return train(request, conversations)
 
 
 def discard_incomplete_checkpoints(step_dir: Path) -> list[Path]:
@@ -71,46 +82,6 @@ def discard_incomplete_checkpoints(step_dir: Path) -> list[Path]:
     return removed
 
 
-def run_finetune(cfg: DictConfig, conversations: list[list[dict]], train_file: str, step_dir: Path) -> TrainResult:
-    """Train the configured model on ``conversations`` (also at ``train_file``) into ``step_dir``, resuming
-    from its last complete checkpoint if an earlier run was interrupted."""
-    discard_incomplete_checkpoints(step_dir)
-    settings = train_settings(cfg)
-    fmt = chat_format(cfg)
-    tokenizer = _tokenizer(cfg, conversations)
-    mlflow.log_param("model.vocab_size", len(tokenizer))
-    if cfg.train.accelerate_config:
-        return _launch_distributed(cfg, settings, fmt, tokenizer, train_file, step_dir)
-    if cfg.model.kind.value == "scratch":
-        model = build_scratch_model(tokenizer, **_scratch_kwargs(cfg))
-    else:
-        model = load_model(cfg.model.path, dtype=cfg.model.dtype, trust_remote_code=cfg.model.trust_remote_code,
-                           attn_implementation=cfg.model.attn_implementation)
-    mlflow.log_param("model.parameters", model.num_parameters())
-    return finetune(model, tokenizer, fmt, conversations, settings, step_dir)
-
-
-def _launch_distributed(cfg, settings: TrainSettings, fmt: ChatFormat, tokenizer, train_file: str, step_dir: Path) -> TrainResult:
-    # Each rank would resolve ${now:} and the like itself: hand it a fully resolved spec instead.
-    tokenizer_dir = step_dir / "tokenizer"
-    tokenizer.save_pretrained(str(tokenizer_dir))
-    source = ({"scratch": _scratch_kwargs(cfg)} if cfg.model.kind.value == "scratch"
-              else {"path": cfg.model.path, "dtype": cfg.model.dtype,
-                    "attn_implementation": cfg.model.attn_implementation})
-    spec = {
-        "tokenizer_dir": str(tokenizer_dir), "data": train_file, "output_dir": str(step_dir),
-        "settings": {**asdict(settings), "report_to": list(settings.report_to)},
-        "model": source, "chat_format": asdict(fmt),
-        "mlflow": {"tracking_uri": mlflow.get_tracking_uri(), "run_id": mlflow.active_run().info.run_id},
-    }
-    spec_path = step_dir / "finetune_spec.json"
-    spec_path.write_text(json.dumps(spec, indent=2))
-    command = [sys.executable, "-m", "accelerate.commands.launch", "--config_file", str(cfg.train.accelerate_config),
-               "-m", "pipeline.lm.training.trainer", "--spec", str(spec_path)]
-    subprocess.run(command, check=True)
-    return TrainResult(**json.loads((step_dir / RESULT_FILE).read_text()))
-
-
 def result_metrics(result: TrainResult) -> dict[str, float]:
     """The finetune run's summary metrics (the Trainer logs the per-step curves itself)."""
     values = {
@@ -120,3 +91,51 @@ def result_metrics(result: TrainResult) -> dict[str, float]:
         "global_step": result.global_step, "dropped_conversations": result.dropped,
     }
     return {key: float(value) for key, value in values.items() if value is not None}
+
+
+def log_model(model: ModelSettings, model_dir: str) -> None:
+    """The finetuned model as an MLflow logged model: the transformers flavour (weights copied, loadable with
+    ``mlflow.transformers.load_model``), or for large models a reference to the run's ``model/`` artifacts."""
+    import transformers
+
+    if model.log_model == "transformers":
+        import mlflow.transformers
+        import torch
+
+        from pipeline.lm.models import load_model, load_tokenizer
+
+        # From the loaded model, not the folder: MLflow 3.17 cannot read a transformers 5 checkpoint folder
+        # (its task table holds class names as strings there).
+        loaded = load_model(model_dir, dtype=model.dtype, trust_remote_code=model.trust_remote_code)
+        tokenizer = load_tokenizer(model_dir, trust_remote_code=model.trust_remote_code)
+        quiet = logging.getLogger("mlflow.transformers")
+        level = quiet.level
+        quiet.setLevel(logging.ERROR)  # no model card or licence to look up for a model trained here
+        try:
+            mlflow.transformers.log_model(
+                {"model": loaded, "tokenizer": tokenizer}, name="model", task="text-generation",
+                pip_requirements=[f"torch=={torch.__version__.split('+')[0]}",
+                                  f"transformers=={transformers.__version__}"],
+            )
+        finally:
+            quiet.setLevel(level)
+    else:
+        run_id = mlflow.active_run().info.run_id
+        mlflow.create_external_model(name="model", source_run_id=run_id, model_type="transformers",
+                                     params={"weights": f"runs:/{run_id}/model"})
+
+
+
+def _checkpoint_models(step_dir: Path, model_dir: Path) -> Path:
+    """Each checkpoint's weights beside the final model's config, tokenizer and chat format: loadable dirs
+    ``step-<n>`` (optimizer states stay behind; they are large and only resuming needs them)."""
+    out = step_dir / "checkpoint_models"
+    shared = [p for p in model_dir.iterdir() if p.is_file() and p.suffix != ".safetensors"]
+    for checkpoint in sorted((step_dir / "checkpoints").glob("checkpoint-*")):
+        target = out / f"step-{checkpoint.name.split('-')[-1]}"
+        target.mkdir(parents=True, exist_ok=True)
+        for source in [*shared, *checkpoint.glob("*.safetensors")]:
+            shutil.copy2(source, target / source.name)
+    return out
+
+

@@ -10,7 +10,7 @@ Layout of an experiment:
   and ``cogmap.hash`` (the hash of everything that decides the step's output).
 
 The eval run logs the metrics in ``EVAL_METRICS`` and the artifact ``episodes.jsonl`` (one record per test
-world, fields ``EPISODE_FIELDS``); with a checkpoint curve it also logs ``curve_success_rate`` with
+world: `pipeline.core.episodes.Episode`); with a checkpoint curve it also logs ``curve_success_rate`` with
 ``step`` = the checkpoint's training step, and each checkpoint's episodes as ``curve/step-<n>.jsonl``. The
 finetune run holds transformers' training metrics (``loss`` by step), the model under ``model/`` with its
 tokenizer, and an MLflow logged model. Data-build, finetune and eval runs log the conversations they use as
@@ -20,18 +20,16 @@ MLflow dataset inputs. The experiment is tagged ``mlflow.experimentKind=custom_m
 from __future__ import annotations
 
 import fcntl
+import hashlib
+import warnings
 from contextlib import contextmanager, nullcontext
 from pathlib import Path
 from typing import Iterator
-
-from pipeline.core.texts import NAMED_SUFFIX, PAPER_MAP_VARIANTS
 
 KIND_TAG = "cogmap.kind"
 STEP_TAG = "cogmap.step"
 HASH_TAG = "cogmap.hash"
 JOB_KIND, STEP_KIND, REPORT_KIND = "job", "step", "report"
-STEPS = ("data-build", "finetune", "eval")
-JOB_TAGS = ("direction", "variant", "mode", "seed", "paper_row")
 # Job-run tags: the largest train world sides (data.train_size_x/y). Test worlds within both are interpolated;
 # the report draws this box on the size heatmaps.
 TRAIN_MAX_TAGS = ("train_max_x", "train_max_y")
@@ -46,42 +44,6 @@ EPISODES_ARTIFACT = "episodes.jsonl"
 CURVE_METRIC = "curve_success_rate"
 CURVE_EPISODES_ARTIFACT = "curve"   # eval run: curve/step-<n>.jsonl, the episodes of each checkpoint
 CHECKPOINTS_ARTIFACT = "checkpoints"  # finetune run: checkpoints/step-<n>/ loadable model dirs (Figure 3)
-
-# Per-episode record fields (eval's episodes.jsonl). Optimal-setting-only fields are null in reachable.
-EPISODE_FIELDS = (
-    "world_index",      # index in the test split
-    "size_x", "size_y", "optimal_length", "dead_ends", "up_right_only", "interpolated",
-    "success",          # bool: SUCCESS in either setting
-    "outcome",          # reachable: success|deadend|max_step|invalid; optimal: success|fail; error: error
-    "n_moves",          # moves taken (reachable) or planned (optimal)
-    "moves",            # list of move words
-    "parsed", "valid", "reaches_goal", "map_exact", "map_first_error",  # optimal setting, graded
-    "first_wrong_line", # optimal setting: map_errors.ErrorSite of the first wrong line, null when all are right
-    "answers",          # the model's raw answers: one (optimal) or one per turn (reachable)
-    "error",            # null, or why this single episode could not run (e.g. prompt longer than context)
-)
-
-EVAL_METRICS = (
-    "success_rate", "success_rate_interp", "success_rate_extrap", "n_episodes",
-    "rate_deadend", "rate_max_step", "rate_invalid", "rate_error",      # reachable outcomes
-    "rate_parsed", "rate_valid", "rate_reaches_goal", "rate_map_exact",  # optimal, graded
-)
-
-# The paper's row names (SPEC 3 and 5), used as the ``paper_row`` tag and in the report's tables.
-PAPER_ROWS = {
-    "marking-deadend": "MARKING deadend",
-    "no-marking": "w.o. MARKING",
-    "no-backtrack": "w.o. BACKTRACK",
-    "no-marking-no-backtrack": "w.o. MARKING BACKTRACK",
-    "no-all": "w.o. ALL",
-    "no-all-no-backtrack": "w.o. ALL BACKTRACK",
-    "none": "NONE",
-    "cot": "CoT",
-    "dfs": "DFS exploration",
-}
-# Beyond the paper: the same rows with each expanded state named.
-PAPER_ROWS |= {name + NAMED_SUFFIX: f"{PAPER_ROWS[name]}, states named (not in the paper)" for name in PAPER_MAP_VARIANTS}
-
 
 def default_tracking_uri(root: str = "outputs") -> str:
     """An absolute SQLite URI under ``root`` (a relative URI or ./mlruns would follow the working directory)."""
@@ -201,3 +163,34 @@ def ui_path(experiment_id: str, run_id: str | None = None) -> str:
     """The path (after the UI's address) of an experiment or run page in MLflow's model-training view."""
     run = f"/runs/{run_id}" if run_id else "/runs"
     return f"#/experiments/{experiment_id}{run}?{UI_VIEW}"
+
+
+def log_settings(values: dict, prefix: str) -> None:
+    """Log a settings section as the active run's params, flattened (``train.learning_rate``, ...)."""
+    import mlflow
+
+    mlflow.log_params({f"{prefix}.{key}": value for key, value in _flatten(values)})
+
+
+def _flatten(tree, prefix: str = ""):
+    if isinstance(tree, dict):
+        for key, value in tree.items():
+            yield from _flatten(value, f"{prefix}.{key}" if prefix else str(key))
+    else:
+        yield prefix, tree
+
+
+def log_dataset(uri: str, local: Path, name: str, context: str) -> None:
+    """Log a conversations file as an MLflow dataset input of the active run (source and digest), so the
+    runs table's Dataset column and the lineage show which data a run used."""
+    import mlflow
+    from mlflow.data.dataset_source_registry import resolve_dataset_source
+    from mlflow.data.meta_dataset import MetaDataset
+
+    digest = hashlib.sha256(Path(local).read_bytes()).hexdigest()[:16]
+    with warnings.catch_warnings():
+        # MLflow registers the same local-file source class for the "" and "file" schemes and warns that a
+        # file:// URI matches both; they are one and the same.
+        warnings.filterwarnings("ignore", message="The specified dataset source can be interpreted in multiple ways")
+        source = resolve_dataset_source(uri)
+    mlflow.log_input(MetaDataset(source, name=name, digest=digest), context=context)

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 from typing import Callable, Sequence
 
-from pipeline.lm.chat import ChatFormat, TextTokenizer, encode_prompt, turn_end_ids
-from pipeline.lm.decoding.hf import (
+from pipeline.lm.chat import ChatFormat, TextTokenizer, encode_prompt, stop_ids
+from pipeline.lm.decoding.loop import (
     Continuation,
     EpisodeResult,
     Generation,
@@ -52,7 +52,7 @@ class VLLMDecoder:
         **llm_kwargs,
     ):
         vllm = _import_vllm()
-        self.stop_ids = turn_end_ids(tokenizer, fmt)
+        self.stop_ids = stop_ids(tokenizer, fmt)
         if len(self.stop_ids) != 1:
             raise ValueError(f"VLLMDecoder needs a one-token turn end; {fmt.turn_end!r} is {self.stop_ids}")
         if isinstance(model, str):
@@ -64,7 +64,7 @@ class VLLMDecoder:
         self.batch_size, self.max_new_tokens, self.max_followup_tokens = batch_size, max_new_tokens, max_followup_tokens
         self.max_length = max_length or self.llm.llm_engine.model_config.max_model_len
 
-    def answer(self, prompts: Sequence[Sequence[dict]], max_new_tokens: int | None = None) -> list[Generation]:
+    def generate(self, prompts: Sequence[Sequence[dict]], max_new_tokens: int | None = None) -> list[Generation]:
         """Greedy answers to conversations (each ending with a human turn), in input order."""
         cap = max_new_tokens or self.max_new_tokens
         encoded = [encode_prompt(self.tokenizer, self.fmt, turns) for turns in prompts]
@@ -80,7 +80,7 @@ class VLLMDecoder:
         self,
         worlds: Sequence[World],
         *,
-        max_steps: int = 200,
+        max_moves: int = 200,
         on_episode: Callable[[EpisodeResult], None] | None = None,
         choose_move: MoveChooser | None = None,
         prompt: str = "paper",
@@ -88,7 +88,7 @@ class VLLMDecoder:
         """Play every world's episode, `batch_size` at a time (see `decode.play_episodes`)."""
         backend = HistorySequences(self._continue_prompts, self.stop_ids, self.max_length)
         return play_episodes(
-            backend, self.tokenizer, self.fmt, worlds, batch_size=self.batch_size, max_steps=max_steps,
+            backend, self.tokenizer, self.fmt, worlds, batch_size=self.batch_size, max_moves=max_moves,
             max_new_tokens=self.max_new_tokens, max_followup_tokens=self.max_followup_tokens,
             on_episode=on_episode, choose_move=choose_move, prompt=prompt,
         )

@@ -9,22 +9,19 @@ import mlflow
 import pytest
 import torch
 from safetensors.torch import load_file
-from hydra import compose, initialize_config_dir
-from hydra.core.global_hydra import GlobalHydra
+from conftest import ROOT, compose_job
 
 from pipeline.workflow.config import ConfigError
 from pipeline.workflow.job import run_job
-from pipeline.workflow.tracking import EPISODE_FIELDS, EPISODES_ARTIFACT, JOB_KIND, KIND_TAG, step_run_tag
+from pipeline.core.episodes import EPISODE_FIELDS
+from pipeline.workflow.tracking import EPISODES_ARTIFACT, JOB_KIND, KIND_TAG, step_run_tag
 
-ROOT = Path(__file__).resolve().parents[1]
 TOY = ["data=toy", "model=toy", "train=toy", "eval=toy", "train.max_steps=2", "eval.n_worlds=3",
        "eval.max_new_tokens=48"]
 
 
 def _cfg(tmp_path, *overrides):
-    GlobalHydra.instance().clear()
-    with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
-        return compose("config", overrides=[*TOY, f"tracking.root={tmp_path}", *overrides])
+    return compose_job(tmp_path, *TOY, *overrides)
 
 
 def _job_runs(cfg):
@@ -92,7 +89,7 @@ def test_the_finetuned_model_is_an_mlflow_model_and_inspect_shows_its_answers(tm
 
 @pytest.mark.slow
 def test_reachable_job_records_outcomes(tmp_path):
-    cfg = _cfg(tmp_path, "variant=dfs", "eval.max_steps=5")
+    cfg = _cfg(tmp_path, "variant=dfs", "eval.max_moves=5")
     metrics = run_job(cfg)
     assert metrics["n_episodes"] == 3
     eval_id = _job_runs(cfg)[0].data.tags[step_run_tag("eval")]
@@ -168,7 +165,10 @@ def test_a_launched_finetune_trains_exactly_what_the_in_process_one_does(tmp_pat
     scores = [run_job(launched), run_job(in_process)]
     for metrics in scores:
         metrics.pop("step_seconds")  # wall time
-    assert scores[0] == scores[1] or not exact
+    if exact:
+        assert scores[0] == scores[1]
+    else:  # GPU kernels are not bitwise deterministic: the same scores within a few episodes
+        assert scores[0]["success_rate"] == pytest.approx(scores[1]["success_rate"], abs=0.05)
     client = mlflow.MlflowClient(launched.tracking.uri)
     runs = [client.get_run(r.data.tags[step_run_tag("finetune")]) for r in _job_runs(launched)]
     assert runs[0].info.run_id != runs[1].info.run_id
@@ -181,4 +181,8 @@ def test_a_launched_finetune_trains_exactly_what_the_in_process_one_does(tmp_pat
                                                                   tracking_uri=launched.tracking.uri))
                          / "model.safetensors") for r in runs]
     assert weights[0].keys() == weights[1].keys()
-    assert all(torch.equal(weights[0][k], weights[1][k]) for k in weights[0]) or not exact
+    for key in weights[0]:
+        if exact:
+            assert torch.equal(weights[0][key], weights[1][key]), key
+        else:
+            torch.testing.assert_close(weights[0][key].float(), weights[1][key].float(), rtol=1e-2, atol=1e-3)

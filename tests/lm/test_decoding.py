@@ -88,8 +88,8 @@ def count_rows_per_forward(model):
 
 def test_batched_answers_equal_unbatched_and_generate_in_input_order(model, tokenizer, worlds):
     prompts = [prompt_turns(world) for world in reversed(worlds)]
-    batched = HFDecoder(model, tokenizer, FMT, batch_size=3, max_new_tokens=16).answer(prompts)
-    single = HFDecoder(model, tokenizer, FMT, batch_size=1, max_new_tokens=16).answer(prompts)
+    batched = HFDecoder(model, tokenizer, FMT, batch_size=3, max_new_tokens=16).generate(prompts)
+    single = HFDecoder(model, tokenizer, FMT, batch_size=1, max_new_tokens=16).generate(prompts)
     assert [g.text for g in batched] == [g.text for g in single]
     assert len({g.text for g in batched}) > 1, "the random model should answer prompts differently"
     stop = turn_end_ids(tokenizer, FMT)[0]
@@ -106,7 +106,7 @@ def test_answers_stop_at_turn_end_and_stopped_rows_cost_nothing(stopping_model, 
     prompts = [prompt_turns(world) for world in worlds]
     calls, handle = count_rows_per_forward(stopping_model)
     try:
-        gens = HFDecoder(stopping_model, tokenizer, FMT, batch_size=4, max_new_tokens=50).answer(prompts)
+        gens = HFDecoder(stopping_model, tokenizer, FMT, batch_size=4, max_new_tokens=50).generate(prompts)
     finally:
         handle.remove()
     assert all(g.finished and g.stop_reason == "turn_end" and g.error is None for g in gens)
@@ -121,7 +121,7 @@ def test_context_overflow_gives_per_item_errors(model, tokenizer, worlds):
     lengths = sorted(len(encode_prompt(tokenizer, FMT, turns)) for turns in prompts)
     assert lengths[0] < lengths[-1]
     limit = lengths[-1]  # the longest prompts do not fit (a prompt needs room for one token), the rest do
-    gens = HFDecoder(model, tokenizer, FMT, batch_size=4, max_new_tokens=50, max_length=limit).answer(prompts)
+    gens = HFDecoder(model, tokenizer, FMT, batch_size=4, max_new_tokens=50, max_length=limit).generate(prompts)
     for turns, gen in zip(prompts, gens):
         n = len(encode_prompt(tokenizer, FMT, turns))
         if n >= limit:
@@ -135,8 +135,8 @@ def test_context_overflow_gives_per_item_errors(model, tokenizer, worlds):
 @pytest.mark.parametrize("baseline", ["reencode", "generate"])
 def test_cached_turns_equal_reencoded_history(model, tokenizer, worlds, baseline):
     decoder = HFDecoder(model, tokenizer, FMT, batch_size=3, max_new_tokens=8, max_followup_tokens=3)
-    cached = decoder.play(worlds, max_steps=6, choose_move=random_walk)
-    reference = decoder.play(worlds, max_steps=6, choose_move=random_walk, strategy=baseline)
+    cached = decoder.play(worlds, max_moves=6, choose_move=random_walk)
+    reference = decoder.play(worlds, max_moves=6, choose_move=random_walk, strategy=baseline)
     assert [r.answers for r in cached] == [r.answers for r in reference]
     assert [(r.outcome, r.moves) for r in cached] == [(r.outcome, r.moves) for r in reference]
     assert sum(r.n_moves for r in cached) > 2 * len(worlds), "episodes should run several turns"
@@ -144,8 +144,8 @@ def test_cached_turns_equal_reencoded_history(model, tokenizer, worlds, baseline
 
 def test_cached_turns_equal_reencoded_when_rows_stop_at_different_steps(stopping_model, tokenizer, worlds):
     decoder = HFDecoder(stopping_model, tokenizer, FMT, batch_size=4, max_new_tokens=20, max_followup_tokens=20)
-    cached = decoder.play(worlds, max_steps=6, choose_move=random_walk)
-    reencoded = decoder.play(worlds, max_steps=6, choose_move=random_walk, strategy="reencode")
+    cached = decoder.play(worlds, max_moves=6, choose_move=random_walk)
+    reencoded = decoder.play(worlds, max_moves=6, choose_move=random_walk, strategy="reencode")
     assert [r.answers for r in cached] == [r.answers for r in reencoded]
     assert len({len(a) for r in cached for a in r.answers}) > 2
 
@@ -155,7 +155,7 @@ def test_finished_episodes_leave_the_batch(stopping_model, tokenizer, worlds):
     calls, handle = count_rows_per_forward(stopping_model)
     try:
         decoder = HFDecoder(stopping_model, tokenizer, FMT, batch_size=3, max_new_tokens=20, max_followup_tokens=20)
-        results = decoder.play(worlds, max_steps=5, choose_move=random_walk, on_episode=finished.append)
+        results = decoder.play(worlds, max_moves=5, choose_move=random_walk, on_episode=finished.append)
     finally:
         handle.remove()
     assert [r.world_index for r in results] == list(range(len(worlds)))
@@ -184,7 +184,7 @@ def test_context_overflow_ends_episodes_with_an_error(model, tokenizer, worlds):
     limit = sorted(lengths)[len(lengths) // 2] + 40
     decoder = HFDecoder(model, tokenizer, FMT, batch_size=3, max_new_tokens=8, max_followup_tokens=4,
                         max_length=limit)
-    results = decoder.play(worlds, max_steps=50, choose_move=random_walk)
+    results = decoder.play(worlds, max_moves=50, choose_move=random_walk)
     for n, result in zip(lengths, results):
         if n >= limit:
             assert result.error and result.answers == [] and result.outcome is None

@@ -1,12 +1,13 @@
 """data-build: deterministic, byte-identical files; splits shared by all variants; disjoint train/test."""
 
 import json
-from types import SimpleNamespace
 
 import pytest
 
+from pipeline.lm.chat import read_conversations
 from pipeline.workflow.data_build import (
-    TEST_CONVERSATIONS, TEST_WORLDS, TRAIN_CONVERSATIONS, TextSpec, build_splits, dataset_sha256, read_conversations,
+    DataSettings,
+    TEST_CONVERSATIONS, TEST_WORLDS, TRAIN_CONVERSATIONS, TextSettings, build_splits, dataset_sha256,
     write_dataset,
 )
 from pipeline.core.world import World, load_worlds
@@ -16,11 +17,11 @@ def _data(**overrides):
     values = dict(train_size_x=[2, 4], train_size_y=[2, 4], test_size_x=[2, 5], test_size_y=[2, 5], frame=6,
                   p_pit=[0.1, 0.5], n_train=40, n_test=10, test_file=None, seed=3, workers=1)
     values.update(overrides)
-    return SimpleNamespace(**values)
+    return DataSettings(**values)
 
 
 def test_same_config_gives_byte_identical_files(tmp_path):
-    spec = TextSpec.of("bwd", "marking-deadend", "optimal")
+    spec = TextSettings.of("bwd", "marking-deadend", "optimal")
     hashes = []
     for name in ("a", "b"):
         train, test = build_splits(_data(workers=1 if name == "a" else 2))
@@ -42,7 +43,7 @@ def test_every_variant_sees_the_same_worlds(tmp_path):
     train, test = build_splits(_data())
     for variant in ("marking-deadend", "no-all", "none", "cot"):
         out = tmp_path / variant
-        write_dataset(out, train, test, TextSpec.of("fwd", variant, "optimal"), (4, 4))
+        write_dataset(out, train, test, TextSettings.of("fwd", variant, "optimal"), (4, 4))
         assert [w.key() for w in load_worlds(out / TEST_WORLDS)] == [w.key() for w in test]
         conversations = read_conversations(out / TRAIN_CONVERSATIONS)
         assert len(conversations) == 40 and conversations[0][0]["from"] == "human"
@@ -53,19 +54,19 @@ def test_every_variant_sees_the_same_worlds(tmp_path):
 def test_the_task_prompt_drops_the_instruction_turns_and_nothing_else(tmp_path):
     train, test = build_splits(_data())
     for prompt in ("paper", "task"):
-        write_dataset(tmp_path / prompt, train, test, TextSpec.of("bwd", "marking-deadend", "optimal", prompt=prompt),
+        write_dataset(tmp_path / prompt, train, test, TextSettings.of("bwd", "marking-deadend", "optimal", prompt=prompt),
                       (4, 4))
     paper, task = (read_conversations(tmp_path / p / TRAIN_CONVERSATIONS) for p in ("paper", "task"))
     assert [turns[2:] for turns in paper] == task
     assert all(len(turns) == 2 and turns[0]["value"].startswith("Grid is from") for turns in task)
-    assert TextSpec.of("bwd", "marking-deadend", "optimal", prompt="task") != TextSpec.of("bwd", "marking-deadend",
+    assert TextSettings.of("bwd", "marking-deadend", "optimal", prompt="task") != TextSettings.of("bwd", "marking-deadend",
                                                                                             "optimal")
 
 
 def test_direction_free_baselines_share_one_text_spec():
-    assert TextSpec.of("fwd", "none", "optimal") == TextSpec.of("bwd", "none", "optimal")
-    assert TextSpec.of("fwd", "dfs", "reachable") == TextSpec.of("bwd", "dfs", "reachable")
-    assert TextSpec.of("fwd", "cot", "optimal") != TextSpec.of("bwd", "cot", "optimal")
+    assert TextSettings.of("fwd", "none", "optimal") == TextSettings.of("bwd", "none", "optimal")
+    assert TextSettings.of("fwd", "dfs", "reachable") == TextSettings.of("bwd", "dfs", "reachable")
+    assert TextSettings.of("fwd", "cot", "optimal") != TextSettings.of("bwd", "cot", "optimal")
 
 
 def test_the_papers_test_file_can_be_the_test_split(paper_test_file):

@@ -16,7 +16,7 @@ from pipeline.core.scoring import (
     parse_answer,
     score_optimal,
 )
-from pipeline.core.texts import DIRECTIONS, MAP_VARIANTS, MODES, VARIANTS
+from pipeline.core.variants import DIRECTIONS, MAP_VARIANTS, MODES, VARIANTS
 from pipeline.core.world import World
 
 GOLDEN_LINES = GOLDEN_FWD_MARKING_DEADEND.split("\n")

@@ -9,7 +9,8 @@ from hypothesis import strategies as st
 
 from pipeline import conversation
 from pipeline.core.environment import EpisodeRecord, GridEnv, Outcome
-from pipeline.core.texts import DIRECTIONS, VARIANTS, prompt_turns
+from pipeline.core.texts import prompt_turns
+from pipeline.core.variants import DIRECTIONS, VARIANTS
 
 
 def test_reset_is_the_third_prompt_turn(example_world, golden):
@@ -53,8 +54,8 @@ def test_invalid(example_world, answer):
     assert env.record().to_dict()["invalid_answer"] == answer
 
 
-def test_max_steps(example_world):
-    env = GridEnv(example_world, max_steps=200)
+def test_max_moves(example_world):
+    env = GridEnv(example_world, max_moves=200)
     env.reset()
     results = [env.step(m) for m in ["up", "down"] * 100]
     assert not any(r.done for r in results[:-1])
@@ -63,7 +64,7 @@ def test_max_steps(example_world):
 
 
 def test_goal_on_the_last_allowed_move_is_success(example_world):
-    env = GridEnv(example_world, max_steps=5)
+    env = GridEnv(example_world, max_moves=5)
     env.reset()
     outcomes = [env.step(m).outcome for m in example_world.optimal_moves()]
     assert outcomes[-1] is Outcome.SUCCESS
@@ -79,9 +80,9 @@ def test_step_after_done_and_reset(example_world):
     assert env.step("up").outcome is None and env.position == (0, 1)
 
 
-def test_bad_max_steps(example_world):
-    with pytest.raises(ValueError, match="max_steps"):
-        GridEnv(example_world, max_steps=0)
+def test_bad_max_moves(example_world):
+    with pytest.raises(ValueError, match="max_moves"):
+        GridEnv(example_world, max_moves=0)
 
 
 def test_record_is_a_dataclass_row(example_world):

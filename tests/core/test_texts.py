@@ -7,16 +7,10 @@ from conftest import worlds
 from hypothesis import given
 
 from pipeline import World, conversation
+from pipeline.core.variants import BASELINES, DIRECTIONS, MAP_VARIANTS, MODES, PAPER_MAP_VARIANTS, PAPER_VARIANTS, VARIANTS
 from pipeline.core.texts import (
-    BASELINES,
-    DIRECTIONS,
     INSTRUCTION,
-    MAP_VARIANTS,
-    MODES,
-    PAPER_MAP_VARIANTS,
-    PAPER_VARIANTS,
     PROMPTS,
-    VARIANTS,
     answer,
     backtrack_lines,
     cognitive_map,

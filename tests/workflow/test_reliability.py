@@ -26,13 +26,12 @@ from pathlib import Path
 
 import mlflow
 import pytest
-from hydra import compose, initialize_config_dir
-from hydra.core.global_hydra import GlobalHydra
+from conftest import ROOT, compose_job
 
 from pipeline.workflow.config import ConfigError
 from pipeline.workflow.evaluation import PartialRecords
 from pipeline.workflow.finetune import discard_incomplete_checkpoints
-from pipeline.lm.models import ModelLoadError
+from pipeline.lm.models import ModelLoadError, ModelSettings
 from pipeline.workflow.job import run_job
 from pipeline.workflow.steps import ARTIFACTS_TAG, get_or_run
 from pipeline.workflow.tracking import (
@@ -40,13 +39,12 @@ from pipeline.workflow.tracking import (
 )
 from pipeline.core.world import WorldError, load_worlds
 
-ROOT = Path(__file__).resolve().parents[1]
 TOY = ["data=toy", "model=toy", "train=toy", "eval=toy"]
 # Small enough to be quick, big enough to kill in the middle: 8 optimizer steps with a checkpoint every 4,
 # and reachable episodes recorded one by one, two at a time.
 # The paper's longer prompt keeps a step slow enough that the kill lands before the next logged step.
 KILLABLE = [*TOY, "model.prompt=paper", "mode=reachable", "variant=no-all", "train.max_steps=8", "train.save_steps=4",
-            "train.logging_steps=2", "eval.batch_size=2", "eval.max_new_tokens=48", "eval.max_steps=4",
+            "train.logging_steps=2", "eval.batch_size=2", "eval.max_new_tokens=48", "eval.max_moves=4",
             "hydra/job_logging=none"]
 EXAMPLE_WORLD = {"question": {"world_size_x": 4, "world_size_y": 3, "wall": [[1, 1], [2, 2]], "pit": [[3, 0]],
                               "start": [0, 0], "goal": [3, 2], "gridstart_x": 0, "gridstart_y": 0}}
@@ -54,9 +52,7 @@ EXAMPLE_WORLD = {"question": {"world_size_x": 4, "world_size_y": 3, "wall": [[1,
 
 # ---------------------------------------------------------------------------------------------------- helpers
 def _cfg(root, *overrides):
-    GlobalHydra.instance().clear()
-    with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
-        return compose("config", overrides=[*TOY, f"tracking.root={root}", *overrides])
+    return compose_job(root, *TOY, *overrides)
 
 
 def _command(root, *overrides, multirun=False):
@@ -285,8 +281,8 @@ def test_a_bad_world_file_is_refused_naming_file_line_and_rule(tmp_path, name, b
     (["data.test_file=/no/such/worlds.jsonl"], ConfigError, r"data.test_file=./no/such/worlds.jsonl.: no such file"),
     (["data.n_test=5"], ConfigError, r"data.n_test=5 but data.test_file=.* holds 1 worlds; allowed: 1..1"),
     (["eval.n_worlds=9"], ConfigError, r"eval.n_worlds=9: .*allowed: 1..8"),
-    (["data.train_size_x=[0,3]"], ConfigError, r"data.train_size_x=\[0, 3\]: need 2 <= min"),
-    (["data.n_train=-1"], ConfigError, r"data.n_train=-1: must be at least 1"),
+    (["data.train_size_x=[0,3]"], ConfigError, r"data.train_size_x=\[0, 3\] is not allowed; expected 2 <= min"),
+    (["data.n_train=-1"], ConfigError, r"data.n_train=-1 is not allowed; expected at least 1"),
 ])
 def test_bad_data_and_eval_values_are_refused_naming_them(store, overrides, error, message):
     if any("n_test=5" in o for o in overrides):
@@ -365,7 +361,7 @@ def test_a_deleted_experiment_is_named_not_written_into(tmp_path):
 
 @pytest.mark.parametrize("override, allowed", [
     ("variant=bogus", "no-marking-no-backtrack"),  # a config group: Hydra lists the options
-    ("train.max_steps=-5", "at least 1"),          # a value: our validation names the rule
+    ("train.max_steps=-5", "a positive integer"),  # a value: our validation names the rule
 ])
 def test_the_command_line_names_a_bad_value_and_what_is_allowed(tmp_path, override, allowed):
     done = _run_cli(tmp_path, "data=toy", override, timeout=120)
@@ -379,7 +375,7 @@ def test_the_command_line_names_a_bad_value_and_what_is_allowed(tmp_path, overri
 def test_a_bad_value_is_one_line_and_hydra_full_error_shows_the_trace(tmp_path):
     done = _run_cli(tmp_path, "data=toy", "data.train_size_x=[5,3]", timeout=120)
     assert done.returncode == 2 and done.stderr.strip().splitlines() == [
-        "error: data.train_size_x=[5, 3]: need 2 <= min <= max <= data.frame (5)"]
+        "error: data.train_size_x=[5, 3] is not allowed; expected 2 <= min <= max <= frame (5)"]
     traced = subprocess.run(_command(tmp_path, "data=toy", "data.train_size_x=[5,3]"), cwd=tmp_path,
                             capture_output=True, text=True, timeout=120, env={**os.environ, "HYDRA_FULL_ERROR": "1"})
     assert traced.returncode != 0 and "Traceback" in traced.stderr and "ConfigError" in traced.stderr
@@ -454,9 +450,9 @@ def test_models_load_from_safetensors_only_and_remote_code_only_on_request():
     assert "use_safetensors=True" in source and "trust_remote_code=trust_remote_code" in source
     assert inspect.signature(modeling.load_model).parameters["trust_remote_code"].default is False
     assert inspect.signature(modeling.load_tokenizer).parameters["trust_remote_code"].default is False
+    assert ModelSettings().trust_remote_code is False   # the base every model preset starts from
     for option in sorted((ROOT / "conf" / "model").glob("*.yaml")):
-        assert "trust_remote_code: false" in option.read_text(), option.name
-    assert _cfg(ROOT / "outputs").model.trust_remote_code is False
+        assert _cfg(ROOT / "outputs", f"model={option.stem}", "model.path=x").model.trust_remote_code is False, option.name
 
 
 def _readme_commands(text: str) -> list[str]:

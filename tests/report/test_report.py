@@ -391,11 +391,11 @@ def test_callback_builds_report(store, tmp_path):
 
 
 def _graded(world_obj, variant: str, answers: list[str]) -> list[dict]:
-    from pipeline.workflow.evaluation import optimal_record
+    from pipeline.core.episodes import optimal_episode
 
     stats = {"size_x": world_obj.size_x, "size_y": world_obj.size_y, "optimal_length": 4, "dead_ends": 0,
              "up_right_only": True, "interpolated": True}
-    return [optimal_record(i, world_obj, stats, text, None, "bwd", variant) for i, text in enumerate(answers)]
+    return [optimal_episode(i, world_obj, stats, text, None, "bwd", variant).to_dict() for i, text in enumerate(answers)]
 
 
 def test_map_errors_count_failing_answers_by_the_kind_of_their_first_wrong_line():

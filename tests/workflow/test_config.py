@@ -8,9 +8,9 @@ from hydra.core.global_hydra import GlobalHydra
 from omegaconf import OmegaConf
 
 from pipeline.workflow.config import ConfigError, UndefinedCell, register_configs, validate, variant_name
-from pipeline.core.texts import PAPER_MAP_VARIANTS, PAPER_VARIANTS
+from pipeline.core.variants import PAPER_MAP_VARIANTS, PAPER_VARIANTS
 
-ROOT = Path(__file__).resolve().parents[1]
+from conftest import ROOT
 CONF, SWEEPS = ROOT / "conf", ROOT / "sweeps"
 register_configs()
 
@@ -30,7 +30,7 @@ def _options(group: str) -> list[str]:
 def test_default_job_is_bwd_marking_deadend_optimal():
     cfg = _compose()
     assert (cfg.direction.value, cfg.mode.value) == ("bwd", "optimal")
-    assert validate(cfg) == "marking-deadend"
+    assert validate(cfg).variant == "marking-deadend"
 
 
 @pytest.mark.parametrize("group", ["direction", "mode", "baseline", "marking", "backtrack", "all_moves", "named",
@@ -43,13 +43,13 @@ def test_every_group_option_composes(group):
 
 @pytest.mark.parametrize("variant", list(PAPER_MAP_VARIANTS) + ["none", "cot"])
 def test_variant_presets_name_their_row(variant):
-    assert validate(_compose([f"variant={variant}"])) == variant
+    assert validate(_compose([f"variant={variant}"])).variant == variant
 
 
 @pytest.mark.parametrize("variant", ["marking-deadend", "no-marking", "no-all-no-backtrack"])
 def test_named_switch_names_the_expanded_states_of_any_map(variant):
-    assert validate(_compose([f"variant={variant}", "named=on"])) == variant + "-named"
-    assert validate(_compose([f"variant={variant}", "named=off"])) == variant
+    assert validate(_compose([f"variant={variant}", "named=on"])).variant == variant + "-named"
+    assert validate(_compose([f"variant={variant}", "named=off"])).variant == variant
 
 
 @pytest.mark.parametrize("baseline", ["none", "cot", "dfs"])
@@ -67,14 +67,14 @@ def test_models_trained_from_scratch_drop_the_instruction_and_pretrained_ones_ke
 
 
 def test_aliases_and_command_line_switches_win_over_presets():
-    assert validate(_compose(["variant=marking"])) == "marking-deadend"
-    assert validate(_compose(["variant=nomarking"])) == "no-marking"
-    assert validate(_compose(["variant=no-marking", "marking=on"])) == "marking-deadend"
-    assert validate(_compose(["variant=marking-deadend", "backtrack=off"])) == "no-backtrack"
+    assert validate(_compose(["variant=marking"])).variant == "marking-deadend"
+    assert validate(_compose(["variant=nomarking"])).variant == "no-marking"
+    assert validate(_compose(["variant=no-marking", "marking=on"])).variant == "marking-deadend"
+    assert validate(_compose(["variant=marking-deadend", "backtrack=off"])).variant == "no-backtrack"
 
 
 def test_dfs_preset_is_reachable_and_optimal_dfs_is_refused():
-    assert validate(_compose(["variant=dfs"])) == "dfs"
+    assert validate(_compose(["variant=dfs"])).variant == "dfs"
     with pytest.raises(UndefinedCell, match="mode=reachable"):
         validate(_compose(["variant=dfs", "mode=optimal"]))
 
@@ -86,15 +86,15 @@ def test_marking_without_all_moves_is_refused_naming_the_values():
 
 @pytest.mark.parametrize("override, message", [
     ("data.train_size_x=[1,5]", "data.train_size_x"),
-    ("data.test_size_y=[2,30]", "data.frame"),
+    ("data.test_size_y=[2,30]", r"data.test_size_y=\[2, 30\] is not allowed; expected 2 <= min <= max <= frame \(6\)"),
     ("data.p_pit=[0.5,1.5]", "data.p_pit"),
     ("data.n_train=0", "data.n_train"),
     ("eval.n_worlds=100000", "eval.n_worlds=100000"),
     ("train.max_steps=0", "train.max_steps"),
     ("model=hf", "model.path"),
     ("model.attn_implementation=flash", "model.attn_implementation='flash'.*sdpa, eager"),
-    ("model.prompt=short", "model.prompt='short': allowed: paper, task"),
-    ("model.log_model=copy", "model.log_model='copy': allowed: transformers, reference"),
+    ("model.prompt=short", "model.prompt='short' is not allowed; expected one of paper, task"),
+    ("model.log_model=copy", "model.log_model='copy' is not allowed; expected one of transformers, reference"),
 ])
 def test_bad_values_fail_before_any_work(override, message):
     cfg = _compose([override, "model.path=null"] if override == "model=hf" else [override])
@@ -111,10 +111,10 @@ def test_compiling_on_a_cpu_without_a_cxx_compiler_is_refused_naming_the_way_out
     monkeypatch.setattr("pipeline.workflow.config.PYTHON_H", Path("/no/such/include/Python.h"))
     with pytest.raises(ConfigError, match=r"compiler.*and the Python headers \(/no/such/include/Python.h"):
         validate(_compose(["train.torch_compile=full"]))
-    assert validate(_compose(["train.torch_compile=none"])) == "marking-deadend"
+    assert validate(_compose(["train.torch_compile=none"])).variant == "marking-deadend"
     monkeypatch.setenv("CXX", "sh")  # any program on PATH, and headers that exist
     monkeypatch.setattr("pipeline.workflow.config.PYTHON_H", Path(__file__))
-    assert validate(_compose(["train.torch_compile=full"])) == "marking-deadend"
+    assert validate(_compose(["train.torch_compile=full"])).variant == "marking-deadend"
 
 
 @pytest.mark.parametrize("override", ["variant=bogus", "direction=up", "mode=sometimes", "data.frame=abc",
@@ -148,7 +148,7 @@ def test_cpu_study_is_the_optimal_half_of_table_1_with_two_seeds_where_asked():
         job = _compose([f"+study_cell={cell}"], name="cpu_study", sweeps=True)
         assert job.mode.value == "optimal" and job.threads == 1 and job.eval.curve and job.train.log_checkpoints
         assert OmegaConf.masked_copy(job, ["data", "model"]) == OmegaConf.masked_copy(_compose(), ["data", "model"])
-        jobs.append((validate(job), job.direction.value if validate(job) != "none" else "-", job.seed))
+        jobs.append((validate(job).variant, job.direction.value if validate(job).variant != "none" else "-", job.seed))
     assert sorted(jobs) == sorted([
         ("none", "-", 0), ("none", "-", 1), ("cot", "fwd", 0), ("cot", "bwd", 0),
         ("marking-deadend", "fwd", 0), ("marking-deadend", "bwd", 0), ("marking-deadend", "bwd", 1),
@@ -158,27 +158,15 @@ def test_cpu_study_is_the_optimal_half_of_table_1_with_two_seeds_where_asked():
 def test_paper_scale_presets_compose():
     cfg = _compose(["data=paper", "model=llama3_8b", "train=paper", "eval=paper"])
     assert cfg.model.dtype == "bfloat16" and cfg.model.max_length == 8192
-    assert cfg.train.max_length == 8192 and cfg.train.warmup_ratio == 0.03 and cfg.train.weight_decay == 0.0
-    assert cfg.eval.backend.value == "vllm"
-    assert Path(cfg.data.test_file).name == "paper_test_3000.jsonl"
+    assert cfg.train.warmup_ratio == 0.03 and cfg.train.weight_decay == 0.0 and cfg.train.learning_rate == 2e-5
+    assert cfg.eval.backend == "vllm"
+    assert cfg.data.test_file == "paper"   # resolved to the fetched, checksummed file (pipeline.workflow.paper_data)
 
 
 @pytest.mark.parametrize("launcher", ["local2", "slurm"])
 def test_launcher_presets_compose(launcher):
     cfg = _compose([f"hydra/launcher={launcher}"], hydra_node=True)
     assert "_target_" in cfg.hydra.launcher
-
-
-def test_train_config_schema_matches_train_settings():
-    """The schema mirrors TrainSettings (kept apart so composing configs never imports torch)."""
-    from dataclasses import fields
-
-    from pipeline.workflow.config import TrainConfig
-    from pipeline.lm.training.trainer import TrainSettings
-    from pipeline.workflow.finetune import _STEP_KEYS
-
-    schema = {f.name for f in fields(TrainConfig)} - set(_STEP_KEYS)
-    assert schema == {f.name for f in fields(TrainSettings)} - {"seed"}  # the job's seed seeds training
 
 
 def test_test_worlds_outside_a_scratch_models_coordinates_are_refused_naming_a_cell(paper_test_file):

@@ -13,10 +13,11 @@ import random
 import pytest
 
 from pipeline.core.environment import GridEnv, Outcome
-from pipeline.workflow.evaluation import optimal_record, reachable_record
+from pipeline.core.episodes import optimal_episode, reachable_episode
 from pipeline.core.generation import GeneratorConfig, sample_world
 from pipeline.core.scoring import parse_action, parse_answer, plan_moves, score_optimal
-from pipeline.core.texts import MAP_VARIANTS, answer
+from pipeline.core.texts import answer
+from pipeline.core.variants import MAP_VARIANTS
 from pipeline.core.world import MOVES, World
 
 N_OUTPUTS = 10_000
@@ -98,7 +99,7 @@ def _corpus(worlds: list[World]) -> list[tuple[World, str, str, str, object]]:
 
 def _play(world: World, output: object) -> Outcome:
     """Feed the answer to the env as a reachable first turn, then as a bare later answer."""
-    env = GridEnv(world, max_steps=3)
+    env = GridEnv(world, max_moves=3)
     env.reset()
     result = env.step(parse_action(output))
     while not result.done:
@@ -124,7 +125,7 @@ def test_ten_thousand_fuzzed_outputs_never_raise(example_world):
             assert action is None or action in MOVES
             if mode == "optimal":
                 score = score_optimal(world, output, direction, variant)
-                record = optimal_record(number, world, _STATS, output, None, direction, variant)
+                record = optimal_episode(number, world, _STATS, output, None, direction, variant).to_dict()
                 assert record["success"] == score.optimal and record["outcome"] in ("success", "fail")
                 optimal_hits += score.optimal
                 parsed_plans += score.parsed
@@ -133,7 +134,7 @@ def test_ten_thousand_fuzzed_outputs_never_raise(example_world):
             else:
                 outcome = _play(world, output)
                 outcomes[outcome] = outcomes.get(outcome, 0) + 1
-                record = reachable_record(number, _STATS, outcome.value, [], None)
+                record = reachable_episode(number, _STATS, outcome.value, [], None).to_dict()
                 assert record["success"] == (outcome is Outcome.SUCCESS)
         except Exception as error:  # pragma: no cover - the message is the point
             pytest.fail(f"case {number} ({direction} {variant} {mode}) raised {error!r} on {output!r:.300}")
@@ -153,4 +154,8 @@ def test_edge_outputs_are_graded_not_raised(example_world, output):
     score = score_optimal(example_world, output, "fwd", "marking-deadend")
     assert score.optimal is False and score.map_exact is False
     assert parse_action(output) in (None, *MOVES)
-    assert GridEnv(example_world).step(parse_action(output)).done in (True, False)
+    move = parse_action(output)
+    result = GridEnv(example_world).step(move)
+    # Not a move: the episode ends INVALID; a move from the start: up is free, the others leave the grid or hit a wall.
+    expected = {None: Outcome.INVALID, "up": None, "right": None}.get(move, Outcome.DEADEND)
+    assert result.outcome is expected and result.done == (expected is not None)

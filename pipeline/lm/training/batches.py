@@ -1,0 +1,123 @@
+"""Training batches: tokenized conversations, the right-padding collator and length-grouped batches.
+
+With packing (the default) batches are grouped by length and right-padded *without* an attention mask.
+Causal attention never looks right, so the padding cannot reach a real token and each sequence computes
+exactly what it would alone, while SDPA keeps its fast ``is_causal`` kernel; grouping keeps the padding to a
+few percent. Flattening a batch into one row (``DataCollatorWithFlattening``) is exact in transformers 5 only
+when no KV cache is created (``use_cache=False``, which Trainer sets), and on a CPU its block-diagonal mask
+costs attention over the whole row (benchmarks/bench_train.py measures both).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import random
+from dataclasses import dataclass
+from typing import Sequence
+
+import torch
+from transformers import PreTrainedTokenizerBase
+
+from pipeline.lm.chat import IGNORE_INDEX, ChatFormat, encode_conversation
+
+log = logging.getLogger(__name__)
+
+
+class ConversationDataset(torch.utils.data.Dataset):
+    """Tokenized conversations (``input_ids``, ``labels``); ``dropped`` counts those over ``max_length``."""
+
+    def __init__(self, examples: list[dict[str, list[int]]], dropped: int = 0):
+        self.examples = examples
+        self.dropped = dropped
+
+    def __len__(self) -> int:
+        return len(self.examples)
+
+    def __getitem__(self, index: int) -> dict[str, list[int]]:
+        return self.examples[index]
+
+    @property
+    def lengths(self) -> list[int]:
+        return [len(example["input_ids"]) for example in self.examples]
+
+
+def tokenize_conversations(
+    tokenizer: PreTrainedTokenizerBase, fmt: ChatFormat, conversations: Sequence[Sequence[dict]], max_length: int
+) -> ConversationDataset:
+    """Encode conversations with loss on gpt turns only. One longer than ``max_length`` is dropped and
+    counted (truncating it would train on a cut-off answer)."""
+    examples, dropped = [], 0
+    for turns in conversations:
+        input_ids, labels = encode_conversation(tokenizer, fmt, turns)
+        if len(input_ids) > max_length:
+            dropped += 1
+            continue
+        examples.append({"input_ids": input_ids, "labels": labels})
+    if dropped:
+        log.warning("dropped %d of %d conversations longer than max_length=%d tokens",
+                    dropped, len(conversations), max_length)
+    return ConversationDataset(examples, dropped)
+
+
+@dataclass
+class RightPadCollator:
+    """Pads to the longest sequence on the right. With ``attention_mask=False`` (packing) no mask is sent:
+    causal attention keeps every real token blind to the padding after it, and SDPA uses ``is_causal``."""
+
+    pad_token_id: int
+    attention_mask: bool = False
+    pad_to_multiple_of: int = 1
+
+    def __call__(self, features: list[dict]) -> dict[str, torch.Tensor]:
+        width = max(len(f["input_ids"]) for f in features)
+        width = -(-width // self.pad_to_multiple_of) * self.pad_to_multiple_of
+        input_ids = torch.full((len(features), width), self.pad_token_id, dtype=torch.long)
+        labels = torch.full((len(features), width), IGNORE_INDEX, dtype=torch.long)
+        mask = torch.zeros((len(features), width), dtype=torch.long)
+        for row, f in enumerate(features):
+            n = len(f["input_ids"])
+            input_ids[row, :n] = torch.tensor(f["input_ids"])
+            labels[row, :n] = torch.tensor(f["labels"])
+            mask[row, :n] = 1
+        batch = {"input_ids": input_ids, "labels": labels}
+        if self.attention_mask:
+            batch["attention_mask"] = mask
+        return batch
+
+
+class LengthGroupedBatches(torch.utils.data.Sampler[int]):
+    """Indices whose consecutive ``batch_size`` runs are batches of similar length, in random batch order.
+
+    Each epoch: a random permutation, cut into megabatches of ``megabatch_mult`` batches, each sorted by length
+    and cut into batches; then the batches are shuffled. transformers' LengthGroupedSampler shrinks megabatches
+    to a quarter of a small data set (8% padding on a few hundred conversations) and runs each megabatch from
+    the longest batch to the shortest, a length curriculum we do not want. Randomness comes from torch's global
+    generator, which Trainer seeds and restores on resume.
+    """
+
+    def __init__(self, lengths: Sequence[int], batch_size: int, megabatch_mult: int = 50):
+        self.lengths, self.batch_size, self.megabatch_mult = list(lengths), batch_size, megabatch_mult
+
+    def __len__(self) -> int:
+        return len(self.lengths)
+
+    def __iter__(self):
+        order = torch.randperm(len(self.lengths)).tolist()
+        size = self.batch_size * self.megabatch_mult
+        batches = []
+        for start in range(0, len(order), size):
+            megabatch = sorted(order[start:start + size], key=self.lengths.__getitem__)
+            batches += [megabatch[i:i + self.batch_size] for i in range(0, len(megabatch), self.batch_size)]
+        return iter([i for b in torch.randperm(len(batches)).tolist() for i in batches[b]])
+
+
+def split_eval(conversations: Sequence, fraction: float, seed: int) -> tuple[list, list]:
+    """A seeded (train, eval) split holding out ``fraction`` of the conversations."""
+    order = list(range(len(conversations)))
+    random.Random(seed).shuffle(order)
+    n_eval = math.floor(len(order) * fraction)
+    held = set(order[:n_eval])
+    train = [c for i, c in enumerate(conversations) if i not in held]
+    return train, [conversations[i] for i in sorted(held)]
+

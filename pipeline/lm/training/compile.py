@@ -1,0 +1,88 @@
+"""How the trainer uses the hardware: bf16 only where the CPU multiplies bf16 in hardware, and torch.compile
+scoped as `TrainSettings.torch_compile` says (regional compilation in place; accelerate's compile
+environment kept out)."""
+
+from __future__ import annotations
+
+import logging
+import os
+from contextlib import contextmanager
+from pathlib import Path
+
+import torch
+
+log = logging.getLogger(__name__)
+
+DYNAMO_ENV_PREFIX = "ACCELERATE_DYNAMO_"
+
+
+def cpu_has_bf16(cpuinfo: str | None = None) -> bool:
+    """Whether this CPU multiplies bf16 matrices in hardware (AVX512-BF16 or AMX on x86; any Arm/Apple CPU
+    torch runs bf16 on is trusted). Without it oneDNN emulates bf16, far slower than fp32 (README, Speed)."""
+    if cpuinfo is None:
+        try:
+            cpuinfo = Path("/proc/cpuinfo").read_text()
+        except OSError:  # not Linux: nothing to read, trust torch
+            return True
+    flags = next((line.split(":", 1)[1].split() for line in cpuinfo.splitlines() if line.startswith("flags")), None)
+    if flags is None:  # no x86 flags line (e.g. Arm's "Features"): trust torch
+        return True
+    return bool({"avx512_bf16", "amx_bf16"} & set(flags))
+
+
+def use_bf16(requested: bool) -> bool:
+    """bf16 as asked, except on a CPU without bf16 hardware, which trains in fp32 instead (with a warning)."""
+    if requested and not torch.cuda.is_available() and not cpu_has_bf16():
+        log.warning("train.bf16=true but this CPU has no bf16 matmul hardware (no avx512_bf16 or amx_bf16 flag): "
+                    "training in fp32 instead")
+        return False
+    return requested
+
+@contextmanager
+def dynamo_environment():
+    """The environment in which a Trainer is built: no ``ACCELERATE_DYNAMO_*`` variables.
+
+    accelerate's TorchDynamoPlugin, which Trainer builds, takes from these variables whatever Trainer does not
+    pass: the backend when ``torch_compile`` is off, and the mode, dynamic shapes and regional compilation
+    always. ``accelerate launch`` sets them from its config, and so did TrainingArguments with accelerate
+    before 1.2. Left in place, they would compile a job whose ``train.torch_compile`` is ``none`` (or change
+    how a ``full`` job compiles): ``train.torch_compile`` alone decides, so a ``dynamo_config`` in an
+    accelerate config is not used. Outside this block the variables are as they were.
+    """
+    saved = {key: value for key, value in os.environ.items() if key.startswith(DYNAMO_ENV_PREFIX)}
+    for key in saved:
+        del os.environ[key]
+    try:
+        yield
+    finally:
+        for key in [key for key in os.environ if key.startswith(DYNAMO_ENV_PREFIX)]:
+            del os.environ[key]
+        os.environ.update(saved)
+
+
+@contextmanager
+def compiled_blocks(model: torch.nn.Module, torch_compile: str):
+    """With ``regional``, compile every block of the model's repeated blocks (a decoder's layers: the
+    ModuleLists whose members share a class) in place while the block runs, then put them back to eager.
+
+    In place, so parameter names, checkpoints and the saved model are those of the plain model. Blocks of one
+    class share their compiled code, so a 4-layer model compiles one layer (twice: the first batch width
+    static, then one graph for every width). accelerate's regional compilation also compiles the small
+    modules around the blocks, each apart; through Trainer that ran slower than eager here. Dynamo's caches
+    are reset afterwards, so the next job in the same process starts under no guards or recompile counts of
+    this one (inductor's on-disk cache keeps the compiled kernels).
+    """
+    if torch_compile != "regional":
+        yield
+        return
+    blocks = [block for module in model.modules() if isinstance(module, torch.nn.ModuleList) and len(module) > 1
+              and len({type(block) for block in module}) == 1 for block in module]
+    for block in blocks:
+        block.compile()
+    try:
+        yield
+    finally:
+        for block in blocks:
+            block._compiled_call_impl = None  # what nn.Module.compile set: calls go to the eager forward again
+        torch._dynamo.reset()
+

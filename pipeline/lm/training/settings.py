@@ -1,0 +1,122 @@
+"""The training settings: one schema, used by the trainer and, unchanged, as the Hydra config's ``train`` node.
+
+Its defaults are the base every ``conf/train/*.yaml`` preset starts from; a preset lists only what differs.
+Values are checked once, when the settings are built (``OmegaConf.to_object`` builds them from the config).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+from enum import Enum
+from typing import Optional
+
+from pipeline.core.checks import SettingError, require
+
+REPORT_TARGETS = ("mlflow",)
+SCHEDULERS = ("cosine", "linear", "constant", "constant_with_warmup", "cosine_with_restarts", "polynomial")
+
+
+class CompileMode(str, Enum):
+    """What torch.compile (inductor) compiles."""
+
+    none = "none"
+    regional = "regional"   # each repeated block (decoder layer) in place; one graph shared by the layers
+    full = "full"           # the whole model, through Trainer
+
+
+@dataclass
+class TrainSettings:
+    """Everything that decides a fine-tuning run besides the model, the data and the seed.
+
+    ``max_steps`` (optimizer steps) wins over ``num_epochs`` when set. ``per_device_batch_size`` counts
+    sequences; the effective batch is it times ``gradient_accumulation_steps`` times the number of devices.
+    ``eval_fraction`` of the conversations is held out for a token-accuracy eval. ``pad_to_multiple_of``
+    rounds each batch's width up: a few distinct shapes instead of one per length, so the kernels oneDNN
+    builds per shape (bf16 on a CPU) are built a few times, not hundreds. ``packing`` groups batches by
+    length and sends no attention mask (see `pipeline.lm.training.batches`). ``torch_compile``: see
+    `CompileMode`; on a CPU, compiling needs a C++ compiler and the Python headers.
+    ``accelerate_config``: train under ``accelerate launch --config_file <it>`` (distributed, e.g. FSDP) in a
+    subprocess. ``log_checkpoints``: the finetune step also logs every checkpoint's weights (the eval
+    step's adaptation curve evaluates them).
+    """
+
+    max_steps: Optional[int] = None
+    num_epochs: float = 1.0
+    per_device_batch_size: int = 16
+    gradient_accumulation_steps: int = 1
+    learning_rate: float = 1e-3
+    lr_scheduler_type: str = "cosine"
+    warmup_ratio: float = 0.03
+    weight_decay: float = 0.0
+    max_grad_norm: float = 1.0
+    packing: bool = True
+    pad_to_multiple_of: int = 8
+    logging_steps: int = 10
+    save_steps: int = 500
+    save_total_limit: Optional[int] = 2
+    bf16: bool = False
+    tf32: bool = False
+    gradient_checkpointing: bool = False
+    torch_compile: CompileMode = CompileMode.none
+    report_to: list[str] = field(default_factory=lambda: ["mlflow"])
+    dataloader_num_workers: int = 0
+    torch_threads: Optional[int] = None
+    eval_fraction: float = 0.0
+    accelerate_config: Optional[str] = None
+    log_checkpoints: bool = False
+
+    def __post_init__(self) -> None:
+        self.report_to = [self.report_to] if isinstance(self.report_to, str) else list(self.report_to)
+        self.torch_compile = _enum(CompileMode, self.torch_compile, "torch_compile")
+        if self.max_steps is not None:
+            require(isinstance(self.max_steps, int) and self.max_steps > 0, "max_steps", self.max_steps,
+                    "a positive integer, or null to train num_epochs")
+        require(self.num_epochs > 0, "num_epochs", self.num_epochs, "a positive number")
+        for name in ("per_device_batch_size", "gradient_accumulation_steps", "logging_steps", "save_steps",
+                     "pad_to_multiple_of"):
+            value = getattr(self, name)
+            require(isinstance(value, int) and value > 0, name, value, "a positive integer")
+        require(self.learning_rate > 0, "learning_rate", self.learning_rate, "a positive number")
+        require(self.lr_scheduler_type in SCHEDULERS, "lr_scheduler_type", self.lr_scheduler_type,
+                f"one of {', '.join(SCHEDULERS)}")
+        require(0 <= self.warmup_ratio < 1, "warmup_ratio", self.warmup_ratio, "a ratio in [0, 1)")
+        require(self.weight_decay >= 0, "weight_decay", self.weight_decay, "a number >= 0")
+        require(self.max_grad_norm > 0, "max_grad_norm", self.max_grad_norm, "a positive number")
+        require(self.save_total_limit is None or self.save_total_limit > 0, "save_total_limit",
+                self.save_total_limit, "a positive integer, or null to keep every checkpoint")
+        require(set(self.report_to) <= set(REPORT_TARGETS), "report_to", self.report_to,
+                f"a subset of {list(REPORT_TARGETS)} (empty: report nowhere)")
+        require(self.dataloader_num_workers >= 0, "dataloader_num_workers", self.dataloader_num_workers,
+                "an integer >= 0")
+        require(self.torch_threads is None or self.torch_threads > 0, "torch_threads", self.torch_threads,
+                "a positive integer, or null to leave torch's setting")
+        require(0 <= self.eval_fraction < 1, "eval_fraction", self.eval_fraction, "a fraction in [0, 1)")
+
+    @classmethod
+    def from_dict(cls, values: dict) -> "TrainSettings":
+        """Settings from a plain mapping; unknown keys are an error, not ignored."""
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise SettingError(f"unknown train settings {unknown}; allowed: {sorted(known)}")
+        return cls(**values)
+
+    def to_dict(self) -> dict:
+        """Plain JSON-ready values (enums as their strings)."""
+        return {f.name: _plain(getattr(self, f.name)) for f in fields(self)}
+
+
+def _enum(kind: type[Enum], value: object, name: str):
+    try:
+        return kind(value.value if isinstance(value, Enum) else value)
+    except ValueError:
+        raise SettingError(f"{name}={value!r} is not allowed; expected one of "
+                           f"{', '.join(m.value for m in kind)}") from None
+
+
+def _plain(value: object) -> object:
+    if isinstance(value, Enum):
+        return value.value
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    return value
