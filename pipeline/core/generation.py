@@ -20,8 +20,13 @@ class GeneratorConfig:
     size_y: tuple[int, int] = (2, 10)
     frame: int = 20
     p_pit: tuple[float, float] = (0.1, 0.5)
+    # "project": restart the tree when the goal gets cut off; "paper": the paper's backtracking search and
+    # list order (pipeline.paper_generator).
+    generator: str = "project"
 
     def __post_init__(self) -> None:
+        if self.generator not in ("project", "paper"):
+            raise ValueError(f"generator={self.generator!r} is not allowed: use 'project' or 'paper'")
         for name in ("size_x", "size_y"):
             low, high = getattr(self, name)
             if not 2 <= low <= high <= self.frame:
@@ -40,6 +45,10 @@ def world_rng(seed: int | str, split: str, index: int) -> random.Random:
 
 def sample_world(rng: random.Random, cfg: GeneratorConfig) -> World:
     """One world: size, offset and p_pit drawn once, then a random tree grown until it holds the goal."""
+    if cfg.generator == "paper":
+        from pipeline.paper_generator import sample_world_paper  # imports this module
+
+        return sample_world_paper(rng, cfg)
     size_x = rng.randint(*cfg.size_x)
     size_y = rng.randint(*cfg.size_y)
     x0 = rng.randint(0, cfg.frame - size_x)
