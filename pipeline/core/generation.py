@@ -12,6 +12,10 @@ from collections.abc import Iterator
 from pipeline.core.world import MOVES, Cell, World
 
 
+# How a world's free-cell tree is grown: restart on a dead end (ours), or backtrack (the paper's).
+GENERATORS = ("project", "paper")
+
+
 @dataclass(frozen=True)
 class GeneratorConfig:
     """Sampling ranges (inclusive) for the world sizes and the pit probability, inside a square frame."""
@@ -21,12 +25,12 @@ class GeneratorConfig:
     frame: int = 20
     p_pit: tuple[float, float] = (0.1, 0.5)
     # "project": restart the tree when the goal gets cut off; "paper": the paper's backtracking search and
-    # list order (pipeline.paper_generator).
+    # list order (pipeline.core.paper_generation).
     generator: str = "project"
 
     def __post_init__(self) -> None:
-        if self.generator not in ("project", "paper"):
-            raise ValueError(f"generator={self.generator!r} is not allowed: use 'project' or 'paper'")
+        if self.generator not in GENERATORS:
+            raise ValueError(f"generator={self.generator!r} is not allowed: use one of {', '.join(GENERATORS)}")
         for name in ("size_x", "size_y"):
             low, high = getattr(self, name)
             if not 2 <= low <= high <= self.frame:
@@ -46,7 +50,7 @@ def world_rng(seed: int | str, split: str, index: int) -> random.Random:
 def sample_world(rng: random.Random, cfg: GeneratorConfig) -> World:
     """One world: size, offset and p_pit drawn once, then a random tree grown until it holds the goal."""
     if cfg.generator == "paper":
-        from pipeline.paper_generator import sample_world_paper  # imports this module
+        from pipeline.core.paper_generation import sample_world_paper  # imports this module
 
         return sample_world_paper(rng, cfg)
     size_x = rng.randint(*cfg.size_x)

@@ -17,7 +17,7 @@ from typing import Iterable, Optional, Sequence
 import mlflow
 from tqdm import tqdm
 
-from pipeline.core.generation import GeneratorConfig, generate_worlds, world_stats
+from pipeline.core.generation import GENERATORS, GeneratorConfig, generate_worlds, world_stats
 from pipeline.core.texts import conversation
 from pipeline.core.variants import text_direction
 from pipeline.core.world import World, load_worlds, save_worlds
@@ -49,8 +49,12 @@ class DataSettings:
     test_file: Optional[str] = None
     seed: int = 0
     workers: int = 2
+    # How worlds are grown: "project" (a dead end restarts the tree) or "paper" (the paper's generator: it
+    # backtracks over its choices, and lists walls and pits in its order; see pipeline.core.paper_generation).
+    generator: str = "project"
 
     def __post_init__(self) -> None:
+        require(self.generator in GENERATORS, "generator", self.generator, f"one of {', '.join(GENERATORS)}")
         for name in ("train_size_x", "train_size_y", "test_size_x", "test_size_y"):
             value = list(getattr(self, name))
             require(len(value) == 2, name, value, "[min, max]")
@@ -65,10 +69,11 @@ class DataSettings:
         """The largest train world sides (X, Y): test worlds within both are interpolated."""
         return max(self.train_size_x), max(self.train_size_y)
 
-    def generator(self, split: str) -> GeneratorConfig:
+    def generator_config(self, split: str) -> GeneratorConfig:
         """The generator settings of the ``train`` or ``test`` split."""
         size_x, size_y = (self.train_size_x, self.train_size_y) if split == "train" else (self.test_size_x, self.test_size_y)
-        return GeneratorConfig(size_x=tuple(size_x), size_y=tuple(size_y), frame=self.frame, p_pit=tuple(self.p_pit))
+        return GeneratorConfig(size_x=tuple(size_x), size_y=tuple(size_y), frame=self.frame, p_pit=tuple(self.p_pit),
+                               generator=self.generator)
 
 
 @dataclass(frozen=True)
@@ -105,9 +110,9 @@ def build_splits(data: DataSettings) -> tuple[list[World], list[World]]:
             )
         test = test[: data.n_test]
     else:
-        test = generate_worlds(data.n_test, data.seed, data.generator("test"), split="test", workers=data.workers)
+        test = generate_worlds(data.n_test, data.seed, data.generator_config("test"), split="test", workers=data.workers)
     exclude = frozenset(world.key() for world in test)
-    train = generate_worlds(data.n_train, data.seed, data.generator("train"), split="train", exclude=exclude, workers=data.workers)
+    train = generate_worlds(data.n_train, data.seed, data.generator_config("train"), split="train", exclude=exclude, workers=data.workers)
     return train, test
 
 

@@ -1,7 +1,7 @@
 """World generation as the paper's released code does it (kaistAI/language_extrapolation,
 envs/gridworld/data/make_jsonl.py), seeded, bounded, standard library only.
 
-Two things set it apart from `pipeline.generate.sample_world` (the "project" generator):
+Two things set it apart from `pipeline.core.generation.sample_world` (the "project" generator):
 
 1. The tree search backtracks. The tree grows one cell at a time, each cell drawn uniformly from the
    cells touching exactly one tree cell, until the goal joins. When no cell can be added, the paper
@@ -38,8 +38,8 @@ from __future__ import annotations
 
 import random
 
-from pipeline.generate import GeneratorConfig, _neighbour_table
-from pipeline.world import Cell, World
+from pipeline.core.generation import GeneratorConfig, _neighbour_table
+from pipeline.core.world import Cell, World
 
 # Backtracks one tree search may make before it is abandoned (measured: see the module docstring).
 MAX_BACKTRACKS = 100_000
