@@ -13,9 +13,10 @@ from functools import partial
 
 from pipeline.core.generation import GeneratorConfig, generate_worlds, world_stats
 from pipeline.core.texts import conversation
+from pipeline.workflow.paper_data import resolve
 from pipeline.core.world import World, load_worlds
 
-PAPER_TEST = "/work/shared/data/paper_test_3000.jsonl"
+# The paper's released test worlds (pipeline.workflow.paper_data: $COGMAP_PAPER_TEST, the cache, or a fetch).
 TRAIN_CFG = GeneratorConfig(size_x=(2, 10), size_y=(2, 10))
 TEST_CFG = GeneratorConfig(size_x=(2, 20), size_y=(2, 20))
 # The longest rendering: all moves listed, every dead end marked, plus the backtrack.
@@ -69,7 +70,7 @@ def main() -> None:
         "worlds",
     )
     _timed("render 1000 test conversations (bwd marking)", partial(_render, tests), 1000, "conv")
-    paper = load_worlds(PAPER_TEST)
+    paper = load_worlds(resolve("test").path)
     _timed("render the 3000 paper test conversations", partial(_render, paper), 3000, "conv")
     share = sum(world_stats(w).up_right_only for w in paper) / len(paper)
     print(f"paper test worlds solvable with up/right only: {share:.1%}")

@@ -31,6 +31,7 @@ import os
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -164,7 +165,7 @@ def job_metrics(uri: str) -> list[dict]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("out", type=Path, help="where gpu_paths.log and summary.json go")
-    parser.add_argument("--work", type=Path, default=Path("/tmp/gpu_paths"), help="store, models, scratch")
+    parser.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "gpu_paths", help="store, models, scratch")
     parser.add_argument("--budget", type=float, default=540, help="seconds for all checks together")
     parser.add_argument("--only", action="append", choices=CHECKS)
     parser.add_argument("--skip", action="append", choices=CHECKS, default=[])

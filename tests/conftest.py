@@ -27,14 +27,13 @@ def compose_job(root, *overrides, name: str = "config", config_dir: Path | None 
         return compose(name, overrides=[*TOY, f"tracking.root={root}", *overrides])
 
 
-def _paper_test() -> Path:
-    """The paper's released test worlds: $COGMAP_PAPER_TEST, else ``shared/`` beside the checkout (where the
-    project keeps it), else the development machine's copy. Tests that need it skip, naming it, when absent."""
-    candidates = [os.environ.get("COGMAP_PAPER_TEST"),
-                  Path(__file__).resolve().parents[2] / "shared" / "data" / "paper_test_3000.jsonl",
-                  "/work/shared/data/paper_test_3000.jsonl"]
-    paths = [Path(c) for c in candidates if c]
-    return next((p for p in paths if p.is_file()), paths[0])
+def _paper_test() -> Path | None:
+    """The paper's released test worlds: $COGMAP_PAPER_TEST (CI points it at its local copy), else the copy a
+    fetch left in the cache (pipeline.workflow.paper_data). Tests that need it skip, naming both, without."""
+    from pipeline.workflow.paper_data import cached_path
+
+    candidates = [os.environ.get("COGMAP_PAPER_TEST"), cached_path("test")]
+    return next((Path(c) for c in candidates if c and Path(c).is_file()), None)
 
 
 PAPER_TEST = _paper_test()
@@ -70,8 +69,9 @@ def example_world() -> World:
 @pytest.fixture(scope="session")
 def paper_test_file() -> Path:
     """Path of the paper's released test file (skips, naming it, where it is absent)."""
-    if not PAPER_TEST.is_file():
-        pytest.skip(f"{PAPER_TEST} is not available (set COGMAP_PAPER_TEST)")
+    if PAPER_TEST is None:
+        pytest.skip("the paper's test file is not available: set COGMAP_PAPER_TEST to a copy, or fetch it "
+                    "(python -m pipeline.workflow.paper_data test)")
     return PAPER_TEST
 
 

@@ -151,7 +151,7 @@ def test_no_tracked_file_names_a_machine_path_or_leaves_the_repository():
     findings = [finding for path in tracked_files(ROOT) for finding in scan_file(ROOT, path)]
     if findings:
         pytest.fail("machine-specific or out-of-repository paths (use a repository-relative path, a config "
-                    "value, an environment variable or pipeline.paper_data):\n" + "\n".join(map(str, findings)),
+                    "value, an environment variable or pipeline.workflow.paper_data):\n" + "\n".join(map(str, findings)),
                     pytrace=False)
 
 

@@ -21,7 +21,8 @@ from pipeline.core.checks import SettingError
 from pipeline.core.variants import BASELINES, DIRECTIONS, MODES, UndefinedCombination, VariantError, check, variant_for
 from pipeline.lm.models import ModelKind, ModelSettings
 from pipeline.lm.training.settings import CompileMode, TrainSettings
-from pipeline.workflow.data_build import DataSettings
+from pipeline.workflow.data_build import DataSettings, world_file
+from pipeline.workflow.paper_data import PaperDataError
 from pipeline.workflow.evaluation import EvalSettings
 from pipeline.workflow.tracking import default_tracking_uri
 
@@ -131,6 +132,11 @@ def validate(cfg: DictConfig) -> JobSettings:
             )
     if data.test_file:
         _check_test_file(data, model)
+    if data.train_file:
+        try:
+            world_file(data, "train")
+        except (FileNotFoundError, PaperDataError) as error:
+            raise ConfigError(str(error)) from None
     if model.kind is ModelKind.hf:
         path = Path(model.path).expanduser()
         if not path.is_dir() or not (path / "config.json").is_file() or not any(path.glob("*.safetensors")):
@@ -144,11 +150,12 @@ def _check_test_file(data: DataSettings, model: ModelSettings) -> None:
     vocabulary holds the cells of data.frame) no world reaches outside the frame."""
     from pipeline.core.world import WorldError, load_worlds
 
-    path = Path(data.test_file).expanduser()
-    if not path.is_file():
-        raise ConfigError(f"data.test_file={data.test_file!r}: no such file; expected a JSONL of worlds in the paper's schema")
     try:
-        worlds = load_worlds(path)
+        found = world_file(data, "test")
+    except (FileNotFoundError, PaperDataError) as error:
+        raise ConfigError(str(error)) from None
+    try:
+        worlds = load_worlds(found.path)
     except WorldError as error:
         raise ConfigError(f"data.test_file={data.test_file!r}: {error}") from None
     if len(worlds) < data.n_test:

@@ -22,6 +22,7 @@ from pipeline.core.texts import conversation
 from pipeline.core.variants import text_direction
 from pipeline.core.world import World, load_worlds, save_worlds
 from pipeline.lm.tokenizer import count_pieces
+from pipeline.workflow.paper_data import PAPER_WORD, ResolvedFile, file_sha256, resolve
 from pipeline.workflow.steps import StepRun
 from pipeline.workflow.tracking import log_dataset, log_settings
 from pipeline.core.checks import require
@@ -46,7 +47,12 @@ class DataSettings:
     p_pit: list[float] = field(default_factory=lambda: [0.1, 0.5])
     n_train: int = 50_000
     n_test: int = 3_000
+    # The test split from a file of worlds in the paper's schema instead of generated ones: a path, or "paper"
+    # for the paper's released 3,000 test worlds (fetched once, checksummed; pipeline.workflow.paper_data).
     test_file: Optional[str] = None
+    # The train split from a file likewise: a path, or "paper" for the paper's released 50,000 train worlds
+    # (an exact reproduction; the first n_train are used, none excluded).
+    train_file: Optional[str] = None
     seed: int = 0
     workers: int = 2
     # How worlds are grown: "project" (a dead end restarts the tree) or "paper" (the paper's generator: it
@@ -92,27 +98,43 @@ class TextSettings:
         return cls(text_direction(direction, variant), variant, mode, seed, prompt)
 
 
+def world_file(data: DataSettings, split: str) -> ResolvedFile | None:
+    """The file the ``split`` comes from (``data.test_file`` / ``data.train_file``), resolved: ``paper`` is the
+    paper's released file (see `paper_data.resolve`); None: the split is generated."""
+    value = data.test_file if split == "test" else data.train_file
+    if not value:
+        return None
+    if value == PAPER_WORD:
+        return resolve(split)
+    path = Path(value).expanduser()
+    if not path.is_file():
+        raise FileNotFoundError(f"data.{split}_file={value!r}: no such file; expected a JSONL of worlds in the paper's "
+                                f"schema (one {{\"question\": {{...}}}} per line), or 'paper'")
+    return ResolvedFile(path, file_sha256(path), "explicit", False)
+
+
+def _from_file(data: DataSettings, split: str, n: int) -> list[World] | None:
+    found = world_file(data, split)
+    if found is None:
+        return None
+    worlds = load_worlds(found.path)
+    if len(worlds) < n:
+        raise ValueError(f"data.n_{split}={n} but data.{split}_file={str(found.path)!r} holds {len(worlds)} worlds; "
+                         f"allowed: 1..{len(worlds)}")
+    return worlds[:n]
+
+
 def build_splits(data: DataSettings) -> tuple[list[World], list[World]]:
-    """(train, test) worlds for a data config: test generated (or the given file), train disjoint from it."""
-    if data.test_file:
-        source = Path(data.test_file).expanduser()
-        if not source.is_file():
-            raise FileNotFoundError(f"data.test_file={data.test_file!r}: no such file; expected a JSONL of worlds "
-                                    f"in the paper's schema (one {{\"question\": {{...}}}} per line)")
-        test = load_worlds(source)
-        if not test:
-            raise ValueError(f"data.test_file={data.test_file!r} holds no worlds; expected at least data.n_test="
-                             f"{data.n_test}")
-        if len(test) < data.n_test:
-            raise ValueError(
-                f"data.n_test={data.n_test} but {data.test_file} holds only {len(test)} worlds; "
-                f"allowed: 1..{len(test)}"
-            )
-        test = test[: data.n_test]
-    else:
+    """(train, test) worlds for a data config: each split generated or taken from its file; a generated train
+    split is disjoint from the test split."""
+    test = _from_file(data, "test", data.n_test)
+    if test is None:
         test = generate_worlds(data.n_test, data.seed, data.generator_config("test"), split="test", workers=data.workers)
-    exclude = frozenset(world.key() for world in test)
-    train = generate_worlds(data.n_train, data.seed, data.generator_config("train"), split="train", exclude=exclude, workers=data.workers)
+    train = _from_file(data, "train", data.n_train)
+    if train is None:
+        exclude = frozenset(world.key() for world in test)
+        train = generate_worlds(data.n_train, data.seed, data.generator_config("train"), split="train", exclude=exclude,
+                                workers=data.workers)
     return train, test
 
 
@@ -183,6 +205,10 @@ def dataset_sha256(out_dir: str | Path) -> str:
 def run_data_build(settings: DataSettings, texts: TextSettings, step_dir: Path) -> None:
     """The data-build step's body (inside its MLflow run): build, write and log the dataset."""
     log_settings(asdict(settings), "data")
+    for split in ("train", "test"):
+        found = world_file(settings, split)
+        if found is not None:  # which file, exactly (the paper's train file has no published checksum)
+            mlflow.set_tags({f"{split}_file": str(found.path), f"{split}_file_sha256": found.sha256})
     train, test = build_splits(settings)
     out = step_dir / "dataset"
     summary = write_dataset(out, train, test, texts, settings.train_max)

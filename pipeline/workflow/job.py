@@ -3,7 +3,6 @@ nested under the job's run. With `-m`, Hydra sweeps the config groups into sever
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import os
 import signal
@@ -20,7 +19,7 @@ from pipeline.core.variants import PAPER_ROWS
 from pipeline.core.checks import SettingError
 from pipeline.core.world import WorldError
 from pipeline.workflow.config import ConfigError, JobSettings, UndefinedCell, config_hash, register_configs, validate
-from pipeline.workflow.data_build import TEST_CONVERSATIONS, TRAIN_CONVERSATIONS, TextSettings, log_step_dataset, run_data_build
+from pipeline.workflow.data_build import TEST_CONVERSATIONS, TRAIN_CONVERSATIONS, TextSettings, log_step_dataset, run_data_build, world_file
 from pipeline.workflow.evaluation import run_eval
 from pipeline.workflow.finetune import run_finetune_step
 from pipeline.workflow.steps import StepRun, clear_inherited_run, get_or_run
@@ -69,14 +68,15 @@ class PrepareStore(Callback):
 
 
 # ---------------------------------------------------------------------------------------------------- hashes
-def _file_digest(path: str | None) -> str | None:
-    return hashlib.sha256(Path(path).expanduser().read_bytes()).hexdigest() if path else None
+def _file_digests(data) -> list[str | None]:
+    """The digests of the files the splits come from (None: generated)."""
+    return [None if found is None else found.sha256 for found in (world_file(data, "test"), world_file(data, "train"))]
 
 
 def step_hashes(job: JobSettings, seed: int, texts: TextSettings) -> dict[str, str]:
     """The identity of each step: what decides its output, and its inputs' identities."""
     data = config_hash("data-build", STEP_VERSIONS["data-build"], asdict(job.data), asdict(texts),
-                       _file_digest(job.data.test_file))
+                       *_file_digests(job.data))
     finetune = config_hash("finetune", STEP_VERSIONS["finetune"], job.model.to_dict(), job.train.to_dict(), seed, data)
     evaluation = config_hash("eval", STEP_VERSIONS["eval"], asdict(job.eval), finetune, data)
     return {"data-build": data, "finetune": finetune, "eval": evaluation}

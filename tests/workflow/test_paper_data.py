@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from pipeline import paper_data
-from pipeline.paper_data import PAPER_COMMIT, PAPER_FILES, PAPER_REPO, PaperDataError, cached_path, resolve
+from pipeline.workflow import paper_data
+from pipeline.workflow.paper_data import PAPER_COMMIT, PAPER_FILES, PAPER_REPO, PaperDataError, cached_path, resolve
 
 # Read before the fixtures clear the environment: the real file, where the caller's shell names one.
 REAL_TEST = os.environ.get("COGMAP_PAPER_TEST")

@@ -19,7 +19,7 @@ A download goes to a temporary file in the cache folder, is checked, and is then
 interrupted or corrupt download never sits under the final name, and parallel jobs can fetch at once.
 
 Standard library only, so it runs wherever the domain core does (a cluster's login node, to prefetch:
-``python -m pipeline.paper_data test train``).
+``python -m pipeline.workflow.paper_data test train``).
 """
 
 from __future__ import annotations
