@@ -163,7 +163,7 @@ def test_paper_scale_presets_compose():
     assert cfg.data.test_file == "paper"   # resolved to the fetched, checksummed file (pipeline.workflow.paper_data)
 
 
-@pytest.mark.parametrize("launcher", ["local2", "slurm"])
+@pytest.mark.parametrize("launcher", ["local2", "slurm", "local_submitit"])
 def test_launcher_presets_compose(launcher):
     cfg = _compose([f"hydra/launcher={launcher}"], hydra_node=True)
     assert "_target_" in cfg.hydra.launcher
