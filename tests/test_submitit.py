@@ -4,8 +4,10 @@ local executor: `hydra/launcher=local_submitit`."""
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
+import time
 from collections import Counter
 import mlflow
 import pytest
@@ -63,3 +65,39 @@ def test_a_sweep_through_the_submitit_launcher_runs_each_job_once_and_builds_the
     assert (tmp_path / "report" / "report.md").is_file()
     assert [r.info.status for r in runs(REPORT_KIND)] == ["FINISHED"]
 
+
+@pytest.mark.slow
+def test_a_preempted_job_is_requeued_by_submitit_and_resumes(tmp_path):
+    """SLURM preempts with SIGTERM, then submitit's signal (USR2), on which submitit requeues the job: the job must
+    leave SIGTERM to submitit (which ignores it) rather than end on it. Here the local executor stands in."""
+    command = [sys.executable, "-m", "pipeline.run", "-m", f"tracking.root={tmp_path}",
+               "hydra/launcher=local_submitit", "hydra.launcher.timeout_min=5", "threads=1", *TOY,
+               "train.max_steps=2000", "train.save_steps=100", "direction=fwd"]
+    log = open(tmp_path / "sweep.log", "w")
+    sweep = subprocess.Popen(command, cwd=tmp_path, stdout=log, stderr=subprocess.STDOUT,
+                             env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    try:
+        deadline = time.monotonic() + 300
+        while not list((tmp_path / "work" / "finetune").glob("*/checkpoints/checkpoint-100")):
+            assert sweep.poll() is None and time.monotonic() < deadline, (tmp_path / "sweep.log").read_text()[-3000:]
+            time.sleep(0.05)
+        (folder,) = [f for f in next((tmp_path / "multirun").iterdir()).joinpath(".submitit").iterdir()
+                     if f.name != "%j"]
+        # The job's folder is named after the local controller's pid; the job runs in its child.
+        (task,) = subprocess.run(["pgrep", "-P", folder.name], capture_output=True, text=True).stdout.split()
+        os.kill(int(task), signal.SIGTERM)
+        time.sleep(2)  # long enough for a job that ended on SIGTERM to be gone before the next signal
+        os.kill(int(task), signal.SIGUSR2)
+        assert sweep.wait(timeout=300) == 0, (tmp_path / "sweep.log").read_text()[-3000:]
+    finally:
+        if sweep.poll() is None:
+            sweep.kill()
+    output = (folder / f"{folder.name}_0_log.out").read_text()
+    assert "Bypassing signal SIGTERM" in output and "Requeued job" in output
+    assert "resuming from" in output and output.count("[job] ") == 1
+
+    client = mlflow.MlflowClient(f"sqlite:///{tmp_path}/mlflow.db")
+    runs = client.search_runs([client.get_experiment_by_name("cogmap").experiment_id])
+    finetunes = sorted(r.info.status for r in runs if r.data.tags.get(STEP_TAG) == "finetune")
+    assert finetunes == ["FAILED", "FINISHED"]  # the preempted attempt, then the requeued one
+    assert "RUNNING" not in {r.info.status for r in runs}

@@ -162,13 +162,17 @@ def _multirun() -> bool:
 
 
 def _interrupt(signum, frame) -> None:
-    # A preempted job (SIGTERM from SLURM or a shell) unwinds like Ctrl-C, so its MLflow runs end FAILED/KILLED.
+    # A stopped job (SIGTERM from a shell, or from SLURM without submitit) unwinds like Ctrl-C, so its MLflow runs
+    # end FAILED/KILLED.
     raise KeyboardInterrupt(f"signal {signum}")
 
 
 def main(cfg: DictConfig) -> float | None:
     """The Hydra task (`pipeline.run` decorates it); returns the success rate (what a sweeper would optimise)."""
-    signal.signal(signal.SIGTERM, _interrupt)
+    # Under submitit (hydra/launcher=slurm or local_submitit) SIGTERM is left to submitit, which ignores it:
+    # SLURM's preemption sends SIGTERM before submitit's own signal, on which submitit requeues the job.
+    if not os.environ.get("SUBMITIT_EXECUTOR"):
+        signal.signal(signal.SIGTERM, _interrupt)
     with errors_for_people():
         results = run_job(cfg)
     return None if results is None else results.get("success_rate")
