@@ -12,7 +12,9 @@ from collections import Counter
 import mlflow
 import pytest
 
-from pipeline.tracking import HASH_TAG, JOB_KIND, KIND_TAG, REPORT_KIND, STEP_KIND, STEP_TAG, STEPS, step_run_tag
+from pipeline.workflow.tracking import HASH_TAG, JOB_KIND, KIND_TAG, REPORT_KIND, STEP_KIND, STEP_TAG, step_run_tag
+
+STEPS = ("data-build", "finetune", "eval")
 
 pytest.importorskip("hydra_plugins.hydra_submitit_launcher", reason="pip install '.[test]' (hydra-submitit-launcher)")
 
