@@ -22,6 +22,9 @@ def compose_job(root, *overrides, name: str = "config", config_dir: Path | None 
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
+    from pipeline.workflow.config import register_configs
+
+    register_configs()
     GlobalHydra.instance().clear()
     with initialize_config_dir(str(config_dir or ROOT / "conf"), version_base="1.3"):
         return compose(name, overrides=[*TOY, f"tracking.root={root}", *overrides])

@@ -11,12 +11,13 @@ from dataclasses import asdict, dataclass, field, fields
 from typing import Iterable, Sequence
 
 from pipeline.core.environment import Outcome
+from pipeline.core.generation import WorldStats
 from pipeline.core.map_errors import first_wrong_line
 from pipeline.core.scoring import score_optimal
 from pipeline.core.world import World
 
-# The test world's statistics every record carries (core.generation.WorldStats).
-STAT_FIELDS = ("size_x", "size_y", "optimal_length", "dead_ends", "up_right_only", "interpolated")
+# The test world's statistics every record carries, as the first fields after its index.
+STAT_FIELDS = tuple(f.name for f in fields(WorldStats))
 
 
 @dataclass

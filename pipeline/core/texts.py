@@ -10,7 +10,7 @@ from pipeline.core.world import MOVES, Cell, World, move_between, step
 
 # What a model is prompted with: the paper's three turns (instruction, "OK", task), or the task turn alone.
 # The instruction is the same English text in every conversation: a model trained from scratch learns
-# nothing from it, yet pays for its ~155 tokens in every step; pretrained models keep the paper's prompt.
+# nothing from it, yet pays for its tokens in every step; pretrained models keep the paper's prompt.
 PROMPTS: tuple[str, ...] = ("paper", "task")
 
 INSTRUCTION = (

@@ -42,7 +42,7 @@ _PIECE_RE = re.compile(PIECE_PATTERN)
 # Cached: the instruction turn, the longest, repeats in every conversation.
 @lru_cache(maxsize=1024)
 def count_pieces(text: str) -> int:
-    """How many tokens ``text`` becomes (the tokenizer's pattern, 4x faster than asking the tokenizer)."""
+    """How many tokens ``text`` becomes (the tokenizer's own pattern, without building an Encoding)."""
     return len(_PIECE_RE.findall(text))
 
 

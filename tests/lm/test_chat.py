@@ -1,0 +1,85 @@
+"""The paper's chat template (model/chat_format=paper, the llama3_8b default): the exact rendered string, the
+token-level loss mask, and decoding's stop and close ids, with a tokenizer built here that knows the
+Llama-3 special tokens."""
+
+from __future__ import annotations
+
+import pytest
+from omegaconf import OmegaConf
+from tokenizers import Tokenizer, decoders, models, pre_tokenizers
+from transformers import PreTrainedTokenizerFast
+
+from conftest import ROOT
+from pipeline.lm.chat import (
+    IGNORE_INDEX, ChatFormat, encode_conversation, encode_followup, encode_prompt, render_conversation, stop_ids,
+    turn_end_ids,
+)
+
+SPECIAL = ("<|begin_of_text|>", "<|end_of_text|>", "[INST]", "[/INST]")
+TURNS = [{"from": "human", "value": "Rules here."}, {"from": "gpt", "value": "OK"},
+         {"from": "human", "value": "Grid is here."}, {"from": "gpt", "value": "Plan:\nup"}]
+
+
+def paper_format() -> ChatFormat:
+    return ChatFormat(**OmegaConf.to_container(OmegaConf.load(ROOT / "conf/model/chat_format/paper.yaml")))
+
+
+@pytest.fixture(scope="module")
+def tokenizer() -> PreTrainedTokenizerFast:
+    """Byte-level pieces (one token per character) plus the Llama-3 specials as single tokens."""
+    vocab = {token: i for i, token in enumerate(SPECIAL)}
+    for code in range(256):
+        vocab.setdefault(chr(code), len(vocab))
+    core = Tokenizer(models.WordLevel(vocab=vocab, unk_token="[INST]"))
+    core.pre_tokenizer = pre_tokenizers.Split(pattern="", behavior="isolated")
+    core.decoder = decoders.Fuse()
+    core.add_special_tokens(list(SPECIAL))
+    return PreTrainedTokenizerFast(tokenizer_object=core, bos_token=SPECIAL[0], eos_token=SPECIAL[1],
+                                   pad_token=SPECIAL[1], clean_up_tokenization_spaces=False)
+
+
+def test_the_paper_template_renders_the_fastchat_llama3_string():
+    expected = ("<|begin_of_text|>[INST] Rules here.[/INST]\nOK<|end_of_text|><|begin_of_text|>"
+                "[INST]Grid is here.[/INST]\nPlan:\nup<|end_of_text|><|begin_of_text|>")
+    assert render_conversation(paper_format(), TURNS) == expected
+    assert render_conversation(paper_format(), TURNS[:3], generation_prompt=True).endswith("Grid is here.[/INST]\n")
+
+
+def test_ids_are_the_rendered_text_and_the_loss_covers_gpt_texts_and_their_ends_only(tokenizer):
+    fmt = paper_format()
+    ids, labels = encode_conversation(tokenizer, fmt, TURNS)
+    assert tokenizer.decode(ids) == render_conversation(fmt, TURNS)
+    targets = [(i, token) for i, (token, label) in enumerate(zip(ids, labels)) if label != IGNORE_INDEX]
+    assert all(labels[i] == token for i, token in targets)
+    assert tokenizer.decode([token for _, token in targets]) == (
+        "OK<|end_of_text|><|begin_of_text|>Plan:\nup<|end_of_text|><|begin_of_text|>")
+    # Nothing of the human turns, the [INST]/[/INST] markers or the first BOS is a target.
+    first_gpt = tokenizer.decode(ids[: targets[0][0]])
+    assert first_gpt == "<|begin_of_text|>[INST] Rules here.[/INST]\n"
+
+
+def test_decoding_stops_at_end_of_text_and_closes_the_turn_before_the_next_observation(tokenizer):
+    fmt = paper_format()
+    end, eot, bot = turn_end_ids(tokenizer, fmt), tokenizer.convert_tokens_to_ids(SPECIAL[1]), tokenizer.convert_tokens_to_ids(SPECIAL[0])
+    assert end == [eot, bot] and stop_ids(tokenizer, fmt) == [eot]
+    prompt = encode_prompt(tokenizer, fmt, TURNS[:3])
+    assert tokenizer.decode(prompt).endswith("[INST]Grid is here.[/INST]\n")
+    # A finished answer stops at <|end_of_text|>; the rest of the turn end opens the next human turn.
+    followup = end[1:] + encode_followup(tokenizer, fmt, "Current:\n(0, 1)")
+    whole, _ = encode_conversation(tokenizer, fmt, [*TURNS, {"from": "human", "value": "Current:\n(0, 1)"}])
+    assert prompt + tokenizer.encode("Plan:\nup", add_special_tokens=False) + [eot] + followup == \
+        whole + tokenizer.encode("[/INST]\n", add_special_tokens=False)
+
+
+def test_a_stop_that_is_not_the_start_of_the_turn_end_is_refused(tokenizer):
+    with pytest.raises(ValueError, match="stop='\\[INST\\]' must encode to the first ids"):
+        stop_ids(tokenizer, ChatFormat(turn_end="<|end_of_text|>", stop="[INST]"))
+
+
+def test_llama3_8b_defaults_to_the_paper_template_and_keeps_the_instruct_headers_as_an_option():
+    from conftest import compose_job
+
+    paper = compose_job(ROOT / "outputs", "model=llama3_8b").model.chat_format
+    instruct = compose_job(ROOT / "outputs", "model=llama3_8b", "model/chat_format=llama3_instruct").model.chat_format
+    assert ChatFormat(**OmegaConf.to_container(paper)) == paper_format()
+    assert instruct.turn_end == "<|eot_id|>" and instruct.first_human_prefix is None
