@@ -9,6 +9,10 @@ from pipeline.core.texts import first_human_text, observation
 from pipeline.core.world import MOVES, Cell, World, step
 
 
+# How an episode is judged: ours, or the paper's harness (see GridEnv).
+RULES = ("project", "paper")
+
+
 class Outcome(str, Enum):
     """How an episode ended."""
 
@@ -55,10 +59,15 @@ class GridEnv:
     An episode ends with SUCCESS on the goal, DEADEND on a move outside the grid or into a wall or pit,
     INVALID on an answer that is not a move, and MAX_STEP once `max_moves` moves have not reached the
     goal (so the model is never asked for move max_moves + 1, which would be "more than" the limit).
+
+    ``rules="paper"`` judges as the paper's harness does: the answer that reaches the limit ends MAX_STEP
+    whatever it does (a goal reached on the 200th answer is a failure there), and so does an empty answer
+    (`step`'s ``answer``); the move is read by `scoring.parse_action_paper` (the caller's business).
     """
 
     world: World
     max_moves: int = 200
+    rules: str = "project"
     position: Cell = field(init=False)
     moves: list[str] = field(init=False, default_factory=list)
     outcome: Outcome | None = field(init=False, default=None)
@@ -67,6 +76,8 @@ class GridEnv:
     def __post_init__(self) -> None:
         if self.max_moves < 1:
             raise ValueError(f"max_moves must be at least 1, got {self.max_moves}")
+        if self.rules not in RULES:
+            raise ValueError(f"rules={self.rules!r} is not allowed; expected one of {', '.join(RULES)}")
         self.position = self.world.start
 
     @property
@@ -82,10 +93,15 @@ class GridEnv:
         self.invalid_answer = None
         return first_human_text(self.world)
 
-    def step(self, move: str | None) -> StepResult:
-        """Apply one move (or a non-move answer, which ends the episode as INVALID)."""
+    def step(self, move: str | None, answer: str | None = None) -> StepResult:
+        """Apply one move (or a non-move answer, which ends the episode as INVALID); ``answer`` is the raw
+        answer the move was read from (the paper's rules end an empty one MAX_STEP)."""
         if self.done:
             raise RuntimeError(f"the episode is over ({self.outcome.value}); call reset() first")
+        if self.rules == "paper" and (answer == "" or len(self.moves) + 1 >= self.max_moves):
+            if move in MOVES:
+                self.moves.append(move)
+            return self._end(Outcome.MAX_STEP)
         if move not in MOVES:
             self.invalid_answer = move
             return self._end(Outcome.INVALID)

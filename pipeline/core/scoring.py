@@ -53,6 +53,18 @@ def parse_answer(text: object) -> ParsedAnswer:
     )
 
 
+def parse_action_paper(text: object) -> str | None:
+    """The move as the paper's harness reads it: everything after the first ``Plan:\n`` (else after the first
+    ``Action:\n``), up to a second one, with ``<think>`` removed; else the bare answer. None unless that is
+    exactly a move (so ``Action:\nup\n`` or a trailing space is not one)."""
+    text = _as_text(text)
+    for header in ("Plan:\n", "Action:\n"):
+        if header in text:
+            text = text.split(header)[1].replace("<think>", "")
+            break
+    return text if text in MOVES else None
+
+
 def parse_action(text: object) -> str | None:
     """The move of a reachable answer: the line after `Action:`, else the bare text; None if not a move."""
     text = _as_text(text)

@@ -17,6 +17,7 @@ import mlflow
 from tqdm import tqdm
 
 from pipeline.core.checks import SettingError, require
+from pipeline.core.environment import RULES
 from pipeline.core.episodes import metrics, optimal_episode, reachable_episode
 from pipeline.core.texts import prompt_turns
 from pipeline.core.world import World, load_worlds
@@ -38,11 +39,15 @@ class EvalSettings:
     batch_size: int = 32
     max_new_tokens: int = 4096
     max_moves: int = 200
+    # How reachable episodes are judged: "project" (ours) or "paper" (the paper's harness: a goal reached on
+    # the max_moves-th answer fails, an empty answer is MAX STEP, the move is everything after "Action:\n").
+    rules: str = "project"
     curve: bool = False
     curve_worlds: int = 50
 
     def __post_init__(self) -> None:
         require(self.backend in BACKENDS, "backend", self.backend, f"one of {', '.join(BACKENDS)}")
+        require(self.rules in RULES, "rules", self.rules, f"one of {', '.join(RULES)}")
         require(self.n_worlds is None or self.n_worlds >= 1, "n_worlds", self.n_worlds, "at least 1, or null for all")
         for name in ("batch_size", "max_new_tokens", "max_moves", "curve_worlds"):
             require(getattr(self, name) >= 1, name, getattr(self, name), "at least 1")
@@ -92,6 +97,7 @@ def evaluate(
     partial_path: str | Path,
     chunk_size: int = 64,
     prompt: str = "paper",
+    rules: str = "project",
 ) -> list[dict]:
     """Run every world not yet in ``partial_path`` and return all records in world order.
 
@@ -119,7 +125,7 @@ def evaluate(
                     partial.add(reachable_episode(i, stats[i], outcome, episode.moves, episode.error, episode.answers).to_dict())
                     progress.update()
 
-                decoder.play([worlds[i] for i in chunk], max_moves=max_moves, on_episode=finished, prompt=prompt)
+                decoder.play([worlds[i] for i in chunk], max_moves=max_moves, on_episode=finished, prompt=prompt, rules=rules)
     finally:
         progress.close()
         partial.close()
@@ -151,7 +157,7 @@ def _evaluate_model(settings: EvalSettings, model: ModelSettings, texts: TextSet
                            max_new_tokens=settings.max_new_tokens, dtype=model.dtype,
                            trust_remote_code=model.trust_remote_code, attn_implementation=model.attn_implementation)
     return evaluate(decoder, worlds, stats, mode=texts.mode, direction=texts.direction or "fwd", variant=texts.variant,
-                    max_moves=settings.max_moves, partial_path=partial_path, prompt=texts.prompt)
+                    max_moves=settings.max_moves, partial_path=partial_path, prompt=texts.prompt, rules=settings.rules)
 
 
 def _evaluate_curve(settings: EvalSettings, model: ModelSettings, texts: TextSettings, finetune: StepRun,

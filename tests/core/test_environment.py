@@ -9,6 +9,7 @@ from hypothesis import strategies as st
 
 from pipeline import conversation
 from pipeline.core.environment import EpisodeRecord, GridEnv, Outcome
+from pipeline.core.scoring import parse_action, parse_action_paper
 from pipeline.core.texts import prompt_turns
 from pipeline.core.variants import DIRECTIONS, VARIANTS
 
@@ -120,3 +121,40 @@ def test_replaying_a_reachable_conversation_succeeds(world, variant, direction, 
     assert [r.observation for r in observations[:-1]] == [t["value"] for t in turns[4::2]]
     if variant != "dfs":
         assert env.record().n_moves == env.record().optimal_length
+
+
+def _walk_to_the_goal(env, world, rules_answer=lambda move: move):
+    for move in world.optimal_moves():
+        result = env.step(move, rules_answer(move))
+    return result
+
+
+def test_the_papers_rules_fail_a_goal_reached_on_the_last_allowed_answer(example_world):
+    n = len(example_world.optimal_moves())
+    assert _walk_to_the_goal(GridEnv(example_world, max_moves=n), example_world).outcome is Outcome.SUCCESS
+    paper = GridEnv(example_world, max_moves=n, rules="paper")
+    assert _walk_to_the_goal(paper, example_world).outcome is Outcome.MAX_STEP
+    assert len(paper.moves) == n
+    assert _walk_to_the_goal(GridEnv(example_world, max_moves=n + 1, rules="paper"), example_world).outcome \
+        is Outcome.SUCCESS
+
+
+def test_the_papers_rules_end_an_empty_answer_max_step_and_ours_invalid(example_world):
+    assert GridEnv(example_world).step(None, "").outcome is Outcome.INVALID
+    assert GridEnv(example_world, rules="paper").step(None, "").outcome is Outcome.MAX_STEP
+    assert GridEnv(example_world, rules="paper").step(None, "left up").outcome is Outcome.INVALID
+    with pytest.raises(ValueError, match="rules='strict'"):
+        GridEnv(example_world, rules="strict")
+
+
+@pytest.mark.parametrize("answer, ours, papers", [
+    ("Thought:\nStep 1:\nAction:\nup", "up", "up"),
+    ("Action:\nup\n", "up", None),           # the paper takes everything after Action:\n, newline included
+    ("Action:\n up", "up", None),
+    ("up", "up", "up"),
+    ("Plan:\nright\nAction:\nup", "up", None),  # Plan:\n comes first for the paper: "right\nAction:\nup"
+    ("Action:\n<think>left", None, "left"),
+    ("", None, None),
+])
+def test_the_papers_move_is_everything_after_action(answer, ours, papers):
+    assert parse_action(answer) == ours and parse_action_paper(answer) == papers

@@ -317,3 +317,9 @@ def test_main_runs_a_request(tokenizer, conversations, tmp_path):
     result = json.loads((tmp_path / "run" / RESULT_FILE).read_text())
     assert result["global_step"] == 2
     assert load_model(result["model_dir"]).config.hidden_size == 32
+
+
+def test_the_papers_gpu_settings_reach_the_trainer(tmp_path):
+    args = _training_arguments(TrainSettings(gradient_checkpointing=True, tf32=True, **QUIET), tmp_path, 0)
+    assert getattr(args, "activation_checkpointing", None) or args.gradient_checkpointing
+    assert args.tf32 is (True if torch.cuda.is_available() else None)  # tf32 is a GPU setting: left alone on a CPU

@@ -95,6 +95,7 @@ def test_marking_without_all_moves_is_refused_naming_the_values():
     ("model.attn_implementation=flash", "model.attn_implementation='flash'.*sdpa, eager"),
     ("model.prompt=short", "model.prompt='short' is not allowed; expected one of paper, task"),
     ("model.log_model=copy", "model.log_model='copy' is not allowed; expected one of transformers, reference"),
+    ("eval.rules=strict", "eval.rules='strict' is not allowed; expected one of project, paper"),
 ])
 def test_bad_values_fail_before_any_work(override, message):
     cfg = _compose([override, "model.path=null"] if override == "model=hf" else [override])

@@ -15,7 +15,8 @@ class Decoder(Protocol):
 
     def generate(self, prompts: list[list[dict]]) -> list: ...
 
-    def play(self, worlds: list[World], *, max_moves: int, on_episode=None, prompt: str = "paper") -> list: ...
+    def play(self, worlds: list[World], *, max_moves: int, on_episode=None, prompt: str = "paper",
+             rules: str = "project") -> list: ...
 
 
 def make_decoder(model_dir: str, *, backend: str = "hf", batch_size: int = 32, max_new_tokens: int = 4096,

@@ -200,6 +200,7 @@ class HFDecoder:
         strategy: HistoryStrategy = "cached",
         choose_move: MoveChooser | None = None,
         prompt: str = "paper",
+        rules: str = "project",
     ) -> list[EpisodeResult]:
         """Play every world's episode, `batch_size` at a time, each keeping its KV cache across turns.
 
@@ -218,7 +219,7 @@ class HFDecoder:
                 batch_size=1 if strategy == "generate" else self.batch_size,
                 max_moves=max_moves, max_new_tokens=self.max_new_tokens,
                 max_followup_tokens=self.max_followup_tokens, on_episode=on_episode, choose_move=choose_move,
-                prompt=prompt,
+                prompt=prompt, rules=rules,
             )
 
     # -- the engine -----------------------------------------------------------------------------------

@@ -14,7 +14,7 @@ from typing import Callable, Iterable, Literal, NamedTuple, Protocol, Sequence
 
 from pipeline.lm.chat import ChatFormat, TextTokenizer, encode_followup, encode_prompt, stop_ids, turn_end_ids
 from pipeline.core.environment import EpisodeRecord, GridEnv, Outcome
-from pipeline.core.scoring import parse_action
+from pipeline.core.scoring import parse_action, parse_action_paper
 from pipeline.core.texts import prompt_turns
 from pipeline.core.world import World
 
@@ -145,6 +145,7 @@ def play_episodes(
     on_episode: Callable[[EpisodeResult], None] | None = None,
     choose_move: MoveChooser | None = None,
     prompt: str = "paper",
+    rules: str = "project",
 ) -> list[EpisodeResult]:
     """Play one episode per world, up to `batch_size` at a time; a finished episode's slot is refilled.
 
@@ -153,9 +154,11 @@ def play_episodes(
     An answer cut at its cap (`max_new_tokens` for the first answer, `max_followup_tokens` for later ones)
     is scored as it stands and, if the episode goes on, closed with the turn-end ids.
     `on_episode` is called as each episode ends (in order of ending); the list returned is in input order.
-    `prompt` is the prompt form (`texts.PROMPTS`) the model was trained with.
+    `prompt` is the prompt form (`texts.PROMPTS`) the model was trained with; `rules` how episodes are
+    judged (`environment.RULES`: ours, or the paper's harness, which also reads the move its own way).
     """
-    choose = choose_move or (lambda text, _observation: parse_action(text))
+    parse = parse_action_paper if rules == "paper" else parse_action
+    choose = choose_move or (lambda text, _observation: parse(text))
     end_ids = turn_end_ids(tokenizer, fmt)
     after_stop = end_ids[len(stop_ids(tokenizer, fmt)):]  # what closes a turn the decoder stopped
     pending_worlds = iter(enumerate(worlds))
@@ -174,7 +177,7 @@ def play_episodes(
     while True:
         while len(live) < batch_size and (item := next(pending_worlds, None)) is not None:
             index, world = item
-            env = GridEnv(world, max_moves=max_moves)
+            env = GridEnv(world, max_moves=max_moves, rules=rules)
             live[index] = _Episode(index, env, env.reset())
             requests[index] = Request(encode_prompt(tokenizer, fmt, prompt_turns(world, prompt)), max_new_tokens)
         if not live:
@@ -193,7 +196,7 @@ def play_episodes(
                 continue
             text = tokenizer.decode(cont.ids, skip_special_tokens=False)
             episode.answers.append(text)
-            step = episode.env.step(choose(text, episode.observation))
+            step = episode.env.step(choose(text, episode.observation), text)
             if step.done:
                 finish(episode)
                 ended.append(key)

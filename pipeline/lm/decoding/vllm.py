@@ -84,13 +84,14 @@ class VLLMDecoder:
         on_episode: Callable[[EpisodeResult], None] | None = None,
         choose_move: MoveChooser | None = None,
         prompt: str = "paper",
+        rules: str = "project",
     ) -> list[EpisodeResult]:
         """Play every world's episode, `batch_size` at a time (see `decode.play_episodes`)."""
         backend = HistorySequences(self._continue_prompts, self.stop_ids, self.max_length)
         return play_episodes(
             backend, self.tokenizer, self.fmt, worlds, batch_size=self.batch_size, max_moves=max_moves,
             max_new_tokens=self.max_new_tokens, max_followup_tokens=self.max_followup_tokens,
-            on_episode=on_episode, choose_move=choose_move, prompt=prompt,
+            on_episode=on_episode, choose_move=choose_move, prompt=prompt, rules=rules,
         )
 
     def _continue_prompts(self, prompts: list[list[int]], caps: list[int]) -> list[Continuation]:

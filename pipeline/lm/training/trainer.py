@@ -9,6 +9,7 @@ Checkpoints live in ``output_dir/checkpoints/checkpoint-<step>``; calling `finet
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import time
@@ -116,6 +117,15 @@ def token_accuracy(model: PreTrainedModel, dataset: ConversationDataset, pad_tok
         total += keep.sum().item()
     return correct / total if total else None
 
+def _checkpointing(enabled: bool) -> dict:
+    """Activation (gradient) checkpointing, under the name this transformers release takes (newer ones renamed
+    ``gradient_checkpointing`` to ``activation_checkpointing`` and warn on the old name); nothing when off."""
+    if not enabled:
+        return {}
+    names = {f.name for f in dataclasses.fields(TrainingArguments)}
+    return {"activation_checkpointing" if "activation_checkpointing" in names else "gradient_checkpointing": True}
+
+
 def _training_arguments(settings: TrainSettings, checkpoints: Path, seed: int) -> TrainingArguments:
     bf16 = use_bf16(settings.bf16)
     return TrainingArguments(
@@ -139,7 +149,7 @@ def _training_arguments(settings: TrainSettings, checkpoints: Path, seed: int) -
         use_cpu=bf16 and not torch.cuda.is_available(),
         torch_compile=settings.torch_compile is CompileMode.full,  # regional: compiled_blocks, in place
         tf32=True if settings.tf32 and torch.cuda.is_available() else None,  # a GPU setting: no-op elsewhere
-        gradient_checkpointing=settings.gradient_checkpointing,
+        **_checkpointing(settings.gradient_checkpointing),
         report_to=list(settings.report_to) or "none",
         dataloader_num_workers=settings.dataloader_num_workers,
         include_num_input_tokens_seen="non_padding",
