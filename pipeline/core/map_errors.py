@@ -14,7 +14,7 @@ import re
 from dataclasses import asdict, dataclass
 
 from pipeline.core.scoring import _as_text, first_difference
-from pipeline.core.texts import answer
+from pipeline.core.texts import golden_answer
 from pipeline.core.variants import MAP_VARIANTS
 from pipeline.core.world import MOVES, Cell, World, step
 
@@ -91,7 +91,7 @@ def _label_error(expected: str, got: str | None) -> str | None:
 def first_wrong_line(world: World, direction: str, variant: str, text: object) -> ErrorSite | None:
     """The first line of ``text`` that departs from the golden optimal-setting answer, classified; None if
     the answer is the golden one. ``direction`` and ``variant`` are checked like `texts.answer`'s."""
-    golden = answer(world, direction, variant, "optimal").split("\n")
+    golden = golden_answer(world, direction, variant, "optimal").split("\n")
     produced = _as_text(text).split("\n")
     index = first_difference(produced, golden)
     if index is None:

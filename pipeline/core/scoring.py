@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
-from pipeline.core.texts import answer, thought_lines
+from pipeline.core.texts import golden_answer, thought_lines
 from pipeline.core.variants import MAP_VARIANTS
 from pipeline.core.world import MOVES, World, step
 
@@ -123,7 +123,7 @@ def score_optimal(world: World, text: object, direction: str, variant: str) -> P
 
     `direction` and `variant` are checked (ValueError names the allowed ones); the text never raises.
     """
-    golden = answer(world, direction, variant, "optimal")
+    golden = golden_answer(world, direction, variant, "optimal")
     parsed = parse_answer(text)
     moves = plan_moves(parsed)
     valid, reaches = _walk(world, moves) if moves is not None else (False, False)

@@ -212,7 +212,7 @@ def _moves(world: World, variant: str, seed: int) -> list[str]:
     return dfs_moves(world, seed) if variant == "dfs" else world.optimal_moves()
 
 
-def answer(world: World, direction: str, variant: str, mode: str, seed: int = 0) -> str:
+def golden_answer(world: World, direction: str, variant: str, mode: str, seed: int = 0) -> str:
     """The first gpt answer: the Thought section, then `Plan:` and all moves, or `Action:` and the first."""
     check(direction, variant, mode)
     return _answer(world, direction, variant, mode, _moves(world, variant, seed))

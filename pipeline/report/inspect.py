@@ -18,7 +18,7 @@ from typing import Sequence
 from pipeline.workflow.data_build import SUMMARY, TEST_WORLDS
 from pipeline.core.environment import GridEnv
 from pipeline.core.scoring import _as_text, first_difference
-from pipeline.core.texts import answer, first_human_text
+from pipeline.core.texts import golden_answer, first_human_text
 from pipeline.core.variants import VARIANTS
 from pipeline.workflow.tracking import EPISODES_ARTIFACT, JOB_KIND, KIND_TAG, default_tracking_uri, step_run_tag
 from pipeline.core.world import World, load_worlds
@@ -68,7 +68,7 @@ def show_episode(record: dict, world: World, direction: str, variant: str, mode:
              "--- task prompt", first_human_text(world)]
     answers = record.get("answers") or []
     if mode == "optimal":
-        golden = answer(world, direction, variant, "optimal")
+        golden = golden_answer(world, direction, variant, "optimal")
         lines += side_by_side(answers[0] if answers else "", golden)
         wrong = record.get("first_wrong_line")
         if wrong:

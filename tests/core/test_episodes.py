@@ -7,7 +7,7 @@ from dataclasses import asdict
 
 from pipeline.core.episodes import EPISODE_FIELDS, STAT_FIELDS, metrics, optimal_episode, reachable_episode
 from pipeline.core.generation import world_stats
-from pipeline.core.texts import answer
+from pipeline.core.texts import golden_answer
 
 
 def test_a_record_carries_the_worlds_statistics_right_after_its_index(example_world):
@@ -19,7 +19,7 @@ def test_a_record_carries_the_worlds_statistics_right_after_its_index(example_wo
 
 def test_metrics_count_successes_by_split_and_outcomes(example_world):
     stats = asdict(world_stats(example_world))
-    golden = answer(example_world, "bwd", "marking-deadend", "optimal")
+    golden = golden_answer(example_world, "bwd", "marking-deadend", "optimal")
     records = [optimal_episode(0, example_world, stats, golden, None, "bwd", "marking-deadend").to_dict(),
                optimal_episode(1, example_world, stats, "Plan:\nup", None, "bwd", "marking-deadend").to_dict(),
                reachable_episode(2, {**stats, "interpolated": False}, "deadend", ["down"], None).to_dict()]

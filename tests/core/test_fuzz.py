@@ -16,7 +16,7 @@ from pipeline.core.environment import GridEnv, Outcome
 from pipeline.core.episodes import optimal_episode, reachable_episode
 from pipeline.core.generation import GeneratorConfig, sample_world
 from pipeline.core.scoring import parse_action, parse_answer, plan_moves, score_optimal
-from pipeline.core.texts import answer
+from pipeline.core.texts import golden_answer
 from pipeline.core.variants import MAP_VARIANTS
 from pipeline.core.world import MOVES, World
 
@@ -88,7 +88,7 @@ def _corpus(worlds: list[World]) -> list[tuple[World, str, str, str, object]]:
         variant = rng.choice(_OPTIMAL_VARIANTS + (("dfs",) if mode == "reachable" else ()))
         key = (index, direction, variant, mode, rng.randrange(3))  # the last: the DFS walk's seed
         if key not in goldens:
-            goldens[key] = answer(world, direction, variant, mode, seed=key[-1])
+            goldens[key] = golden_answer(world, direction, variant, mode, seed=key[-1])
         golden = goldens[key]
         output = golden if rng.random() < 0.05 else _mutate(rng, golden)
         if rng.random() < 0.3:  # mutations of mutations

@@ -7,14 +7,14 @@ from hypothesis import given, settings, strategies as st
 
 from pipeline import World
 from pipeline.core.map_errors import LINE_KINDS, NEIGHBOURS, STEP_BUCKETS, category, first_wrong_line, step_bucket
-from pipeline.core.texts import answer
+from pipeline.core.texts import golden_answer
 
 # 3 x 3, start (0, 0), goal (2, 2); wall (1, 1), pit (0, 2): the path goes right along y = 0, then up.
 WORLD = World(3, 3, 0, 0, ((1, 1),), ((0, 2),), (0, 0), (2, 2))
 
 
 def _with(variant: str, index: int, line: str | None, direction: str = "bwd") -> str:
-    lines = answer(WORLD, direction, variant, "optimal").split("\n")
+    lines = golden_answer(WORLD, direction, variant, "optimal").split("\n")
     if line is None:
         return "\n".join(lines[:index])
     lines[index] = line
@@ -22,7 +22,7 @@ def _with(variant: str, index: int, line: str | None, direction: str = "bwd") ->
 
 
 def _golden(variant: str, direction: str = "bwd") -> list[str]:
-    return answer(WORLD, direction, variant, "optimal").split("\n")
+    return golden_answer(WORLD, direction, variant, "optimal").split("\n")
 
 
 def test_the_golden_answer_has_no_wrong_line():

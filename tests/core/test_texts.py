@@ -11,7 +11,7 @@ from pipeline.core.variants import BASELINES, DIRECTIONS, MAP_VARIANTS, MODES, P
 from pipeline.core.texts import (
     INSTRUCTION,
     PROMPTS,
-    answer,
+    golden_answer,
     backtrack_lines,
     cognitive_map,
     cot_thought,
@@ -61,11 +61,11 @@ def test_golden_turn_3(example_world, golden):
 
 
 def test_golden_fwd_marking_deadend(example_world, golden):
-    assert answer(example_world, "fwd", "marking-deadend", "optimal") == golden["fwd_marking_deadend"]
+    assert golden_answer(example_world, "fwd", "marking-deadend", "optimal") == golden["fwd_marking_deadend"]
 
 
 def test_golden_bwd_no_all(example_world, golden):
-    assert answer(example_world, "bwd", "no-all", "optimal") == golden["bwd_no_all"]
+    assert golden_answer(example_world, "bwd", "no-all", "optimal") == golden["bwd_no_all"]
 
 
 def test_cognitive_map_is_the_answer_without_plan(example_world, golden):
@@ -95,15 +95,15 @@ def test_observation_order_and_blocked_moves(example_world):
 
 
 def test_variants_differ_only_by_switches(example_world):
-    fwd_no_marking = answer(example_world, "fwd", "no-marking", "optimal")
+    fwd_no_marking = golden_answer(example_world, "fwd", "no-marking", "optimal")
     assert "cut" not in fwd_no_marking
     # Marking only relabels: same number of lines, same cells.
-    marked = answer(example_world, "fwd", "marking-deadend", "optimal").split("\n")
+    marked = golden_answer(example_world, "fwd", "marking-deadend", "optimal").split("\n")
     assert len(marked) == len(fwd_no_marking.split("\n"))
-    assert answer(example_world, "fwd", "no-backtrack", "optimal") == answer(
+    assert golden_answer(example_world, "fwd", "no-backtrack", "optimal") == golden_answer(
         example_world, "fwd", "marking-deadend", "optimal"
     ).replace("\n".join([""] + backtrack_lines(example_world, "fwd")), "")
-    no_all = answer(example_world, "fwd", "no-all", "optimal")
+    no_all = golden_answer(example_world, "fwd", "no-all", "optimal")
     assert "cut" not in no_all and "(-1, 0)" not in no_all
 
 
@@ -134,8 +134,8 @@ def test_cot_and_none(example_world):
         "Step 5:",
         "Backtrack:",
     ]
-    assert answer(example_world, "fwd", "none", "optimal") == "Plan:\nright\nright\nup\nright\nup"
-    assert answer(example_world, "bwd", "none", "reachable") == "Action:\nright"
+    assert golden_answer(example_world, "fwd", "none", "optimal") == "Plan:\nright\nright\nup\nright\nup"
+    assert golden_answer(example_world, "bwd", "none", "reachable") == "Action:\nright"
     assert conversation(example_world, "fwd", "none", "reachable") == conversation(
         example_world, "bwd", "none", "reachable"
     )
@@ -152,7 +152,7 @@ def test_cot_and_none(example_world):
 )
 def test_unknown_names(example_world, args, message):
     with pytest.raises(ValueError, match=message):
-        answer(example_world, *args)
+        golden_answer(example_world, *args)
     with pytest.raises(ValueError, match=message):
         conversation(example_world, *args)
 
@@ -215,8 +215,8 @@ def test_maps_anywhere_in_the_plane(example_world, offset):
         shift(example_world.start),
         shift(example_world.goal),
     )
-    lines = answer(moved, "fwd", "marking-deadend", "optimal").split("\n")
-    golden = answer(example_world, "fwd", "marking-deadend", "optimal").split("\n")
+    lines = golden_answer(moved, "fwd", "marking-deadend", "optimal").split("\n")
+    golden = golden_answer(example_world, "fwd", "marking-deadend", "optimal").split("\n")
     assert len(lines) == len(golden)
     assert lines[2] == f"({dx}, {dy + 1})" and lines[4] == f"({dx}, {dy - 1})"
 
@@ -236,8 +236,8 @@ def test_task_prompt_is_the_paper_prompt_without_the_instruction(example_world, 
 @pytest.mark.parametrize("variant", list(PAPER_MAP_VARIANTS))
 def test_named_map_is_the_paper_map_with_a_from_line_per_expanded_state(variant, direction):
     world = _world(walls=[(1, 1)], pits=[(0, 2)], size=(3, 3))
-    plain = answer(world, direction, variant, "optimal").split("\n")
-    named = answer(world, direction, variant + "-named", "optimal").split("\n")
+    plain = golden_answer(world, direction, variant, "optimal").split("\n")
+    named = golden_answer(world, direction, variant + "-named", "optimal").split("\n")
     assert [line for line in named if not line.startswith("From ")] == plain
     # One From line per expanded state, naming it, right after its step header or the previous state's lines.
     froms = [line for line in named if line.startswith("From ")]
@@ -251,7 +251,7 @@ def test_named_map_is_the_paper_map_with_a_from_line_per_expanded_state(variant,
 def test_named_golden_bwd_marking_deadend():
     # A 2 x 2 world, wall at (1, 0): BFS from the goal (1, 1) reaches (0, 1) then the start (0, 0).
     world = _world(walls=[(1, 0)], size=(2, 2))
-    assert answer(world, "bwd", "marking-deadend-named", "optimal") == "\n".join([
+    assert golden_answer(world, "bwd", "marking-deadend-named", "optimal") == "\n".join([
         "Thought:", "Step 1:", "From (1, 1):", "(1, 2)", "cut", "(1, 0)", "cut", "(0, 1)", "right", "(2, 1)", "cut",
         "Step 2:", "From (0, 1):", "(0, 2)", "cut", "(0, 0)", "up", "(-1, 1)", "cut", "(1, 1)", "cut",
         "Backtrack:", "(0, 0)", "up", "(0, 1)", "right", "(1, 1)", "Plan:", "up", "right"])

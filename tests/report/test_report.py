@@ -11,7 +11,8 @@ import pandas as pd
 import pytest
 from scipy.stats import binomtest
 
-from pipeline.report import build as report
+from pipeline.core import variants
+from pipeline.report import build, load, paper, tables
 from pipeline.report.stats import mcnemar, mcnemar_exact, seeded_rate, wilson_interval
 from pipeline.workflow.tracking import (CURVE_METRIC, EPISODES_ARTIFACT, JOB_KIND, KIND_TAG, REPORT_KIND,
                                STEP_KIND, STEP_TAG, ensure_experiment, step_run_tag)
@@ -115,7 +116,7 @@ class Store:
             eval_run=None, loss=None, curve=None, artifact=True, job_tags=None) -> tuple[str, str]:
         """A job run with nested finetune and eval runs (or pointing at ``eval_run``)."""
         job = self._run({KIND_TAG: JOB_KIND, "mode": mode, "direction": direction, "variant": variant,
-                         "seed": str(seed), "paper_row": report.PAPER_ROWS[variant], **(job_tags or {})})
+                         "seed": str(seed), "paper_row": variants.PAPER_ROWS[variant], **(job_tags or {})})
         tags = {}
         if variant != "dfs":
             finetune = self._run({KIND_TAG: STEP_KIND, STEP_TAG: "finetune"}, job)
@@ -168,7 +169,7 @@ def store(tmp_path_factory):
 @pytest.fixture(scope="module")
 def built(store, tmp_path_factory):
     out = tmp_path_factory.mktemp("report")
-    return report.build_report(store.uri, "cogmap", out), store
+    return build.build_report(store.uri, "cogmap", out), store
 
 
 def cell(table, mode, direction, variant, subset="all"):
@@ -195,11 +196,11 @@ def test_table1_uses_latest_finished_job(built):
 def test_missing_cells_are_missing_not_zero(built):
     result, _ = built
     row = cell(result.tables["table1"], "optimal", "bwd", "marking-deadend")
-    assert row["status"] == report.MISSING and math.isnan(row["rate"]) and row["paper"] == 0.705
+    assert row["status"] == tables.MISSING and math.isnan(row["rate"]) and row["paper"] == 0.705
     eight = result.tables["table8"]
-    assert (eight["status"] == report.MISSING).all()
+    assert (eight["status"] == tables.MISSING).all()
     no_all = cell(result.tables["table7"], "reachable", "fwd", "no-all")   # eval without episodes
-    assert no_all["status"] == report.MISSING
+    assert no_all["status"] == tables.MISSING
     assert any(EPISODES_ARTIFACT in note for note in result.notes)
     text = (result.out_dir / "tables" / "table1.md").read_text()
     assert "not run · paper 0.705" in text
@@ -236,7 +237,7 @@ def test_subsets(built):
     assert (interp["successes"], interp["n"]) == (expected, sum(w["interpolated"] for w in worlds))
     extrap = cell(table, "optimal", "fwd", "marking-deadend", "extrapolated")
     assert interp["n"] + extrap["n"] == N
-    assert set(table["subset"]) == set(report.SUBSETS)
+    assert set(table["subset"]) == set(tables.SUBSETS)
 
 
 def test_paper_numbers_match_spec():
@@ -251,7 +252,7 @@ def test_paper_numbers_match_spec():
         ("optimal", "no-backtrack"): (0.516, 0.423),
         ("reachable", "no-marking-no-backtrack"): (0.672, 0.739),
         ("reachable", "no-backtrack"): (0.624, 0.852), ("reachable", "dfs"): (0.945, 0.945)}
-    assert report.PAPER_SUCCESS == spec
+    assert paper.PAPER_SUCCESS == spec
 
 
 def test_table3(built):
@@ -326,9 +327,9 @@ def test_report_run_holds_the_files(built):
 
 def test_report_runs_are_not_read_as_jobs(built):
     result, store = built
-    data = report.load_store(store.uri, "cogmap")
+    data = load.load_store(store.uri, "cogmap")
     assert len(data.jobs) == len(result.tables["jobs"]) == 9
-    assert report.compute_tables(data)["table1"].equals(result.tables["table1"])
+    assert tables.compute_tables(data)["table1"].equals(result.tables["table1"])
 
 
 # ---------------------------------------------------------------------------------- CLI and callback
@@ -340,7 +341,7 @@ def test_train_box_comes_from_job_tags(tmp_path):
     s = Store(tmp_path)
     s.job("optimal", "fwd", "marking-deadend", wins=set(range(5)), job_tags={"train_max_x": "6", "train_max_y": "4"})
     s.job("optimal", "bwd", "marking-deadend", wins=set(range(5)))          # a job logged before the tags
-    data = report.load_store(s.uri, "cogmap")
+    data = load.load_store(s.uri, "cogmap")
     by_direction = dict(tuple(data.episodes.groupby("direction")))
     # The tags win over the episodes' interpolated flags, which would infer (5, 5) here.
     assert train_box(by_direction["fwd"]) == (6, 4)
@@ -351,10 +352,10 @@ def test_train_box_comes_from_job_tags(tmp_path):
 
 def test_cli_missing_store_and_experiment(tmp_path, store, capsys):
     missing = f"sqlite:///{tmp_path}/nothing.db"
-    assert report.main(["--tracking-uri", missing, "--out", str(tmp_path / "r")]) == 2
+    assert build.main(["--tracking-uri", missing, "--out", str(tmp_path / "r")]) == 2
     assert "nothing.db" in capsys.readouterr().err
     assert not (tmp_path / "nothing.db").exists()
-    assert report.main(["--tracking-uri", store.uri, "--experiment", "nope",
+    assert build.main(["--tracking-uri", store.uri, "--experiment", "nope",
                         "--out", str(tmp_path / "r")]) == 2
     assert "'nope'" in capsys.readouterr().err
 
@@ -362,7 +363,7 @@ def test_cli_missing_store_and_experiment(tmp_path, store, capsys):
 def test_cli_empty_experiment(tmp_path, store):
     ensure_experiment(store.uri, "empty", str(tmp_path / "artifacts"))
     out = tmp_path / "r"
-    assert report.main(["--tracking-uri", store.uri, "--experiment", "empty", "--out", str(out)]) == 0
+    assert build.main(["--tracking-uri", store.uri, "--experiment", "empty", "--out", str(out)]) == 0
     assert "No finished job runs" in (out / "report.md").read_text()
     table1 = (out / "tables" / "table1.csv").read_text()
     assert "not run" in table1 and "0.585" in table1
@@ -374,14 +375,14 @@ def test_callback_logs_failures_as_warnings(tmp_path, caplog):
     callback = instantiate({"_target_": "pipeline.report.build.ReportCallback",
                             "tracking_uri": f"sqlite:///{tmp_path}/none.db", "experiment": "cogmap",
                             "out_dir": str(tmp_path / "r")})
-    with caplog.at_level(logging.WARNING, logger="pipeline.report.build.build"):
+    with caplog.at_level(logging.WARNING, logger="pipeline.report.build"):
         callback.on_multirun_end(config=None)
     assert "Could not build the report" in caplog.text
 
 
 def test_callback_builds_report(store, tmp_path):
     ensure_experiment(store.uri, "empty-too", str(tmp_path / "artifacts"))
-    report.ReportCallback(store.uri, "empty-too", str(tmp_path / "r")).on_multirun_end(config=None)
+    build.ReportCallback(store.uri, "empty-too", str(tmp_path / "r")).on_multirun_end(config=None)
     assert (tmp_path / "r" / "report.md").stat().st_size > 0
     runs = store.client.search_runs([store.client.get_experiment_by_name("empty-too").experiment_id])
     assert [r.data.tags[KIND_TAG] for r in runs] == [REPORT_KIND]
@@ -400,24 +401,24 @@ def _graded(world_obj, variant: str, answers: list[str]) -> list[dict]:
 
 def test_map_errors_count_failing_answers_by_the_kind_of_their_first_wrong_line():
     from pipeline import World
-    from pipeline.core.texts import answer
+    from pipeline.core.texts import golden_answer
 
     grid = World(3, 3, 0, 0, ((1, 1),), ((0, 2),), (0, 0), (2, 2))
-    golden = answer(grid, "bwd", "marking-deadend", "optimal").split("\n")
+    golden = golden_answer(grid, "bwd", "marking-deadend", "optimal").split("\n")
     # Answers that go wrong and then stop (no plan: they fail).
     wrong_label = golden[:5] + ["cut"]                        # Step 1: a free cell written 'cut'
     wrong_cell = golden[:2] + ["(9, 9)"]                      # Step 1: the first neighbour's coordinate
     records = _graded(grid, "marking-deadend", ["\n".join(golden), "\n".join(wrong_label), "\n".join(wrong_label),
                                                 "\n".join(wrong_cell)])
     assert records[0]["success"] and records[0]["first_wrong_line"] is None
-    frame = report.episodes_frame(records).assign(mode="optimal", direction="bwd", variant="marking-deadend",
+    frame = load.episodes_frame(records).assign(mode="optimal", direction="bwd", variant="marking-deadend",
                                                    seed="0")
-    table = report.map_errors_table(report.Cells(frame))
+    table = tables.map_errors_table(tables.Cells(frame))
     rows = table[table["subset"] == "all"].set_index("category")
     assert rows.loc["label: cut for move", "n"] == 2 and rows.loc["coordinate", "n"] == 1
     assert rows.loc["label: cut for move", "share"] == pytest.approx(2 / 3)
     assert rows.loc["label: cut for move", "step 1"] == 2 and rows["later_frontier_state"].sum() == 0
-    by_step = report.map_errors_by_step_table(pd.concat([frame.assign(step=100), frame.iloc[:2].assign(step=200)]))
+    by_step = tables.map_errors_by_step_table(pd.concat([frame.assign(step=100), frame.iloc[:2].assign(step=200)]))
     at = by_step[by_step["subset"] == "all"].set_index(["step", "category"])
     assert at.loc[(100, "label: cut for move"), "n"] == 2 and at.loc[(200, "label: cut for move"), "n"] == 1
     assert at.loc[(200, "label: cut for move"), "success_rate"] == pytest.approx(0.5)

@@ -15,16 +15,9 @@ import mlflow
 import pytest
 from conftest import compose_job
 
-from pipeline.workflow.config import ConfigError
-from pipeline.workflow.evaluation import PartialRecords
-from pipeline.workflow.finetune import discard_incomplete_checkpoints
-from pipeline.lm.models import ModelLoadError, ModelSettings
-from pipeline.workflow.job import run_job
-from pipeline.workflow.steps import ARTIFACTS_TAG, get_or_run
 from pipeline.workflow.tracking import (
-    EPISODES_ARTIFACT, JOB_KIND, KIND_TAG, STEP_KIND, STEP_TAG, StoreError, ensure_experiment, step_run_tag,
+    EPISODES_ARTIFACT, JOB_KIND, KIND_TAG, STEP_KIND, STEP_TAG, step_run_tag,
 )
-from pipeline.core.world import WorldError, load_worlds
 
 TOY = ["data=toy", "model=toy", "train=toy", "eval=toy"]
 # Small enough to be quick, big enough to kill in the middle: 8 optimizer steps with a checkpoint every 4,

@@ -13,13 +13,10 @@ import mlflow
 import pytest
 
 from pipeline.workflow.config import ConfigError
-from pipeline.workflow.evaluation import PartialRecords
-from pipeline.workflow.finetune import discard_incomplete_checkpoints
-from pipeline.lm.models import ModelLoadError, ModelSettings
+from pipeline.lm.models import ModelLoadError
 from pipeline.workflow.job import run_job
-from pipeline.workflow.steps import ARTIFACTS_TAG, get_or_run
 from pipeline.workflow.tracking import (
-    EPISODES_ARTIFACT, JOB_KIND, KIND_TAG, STEP_KIND, STEP_TAG, StoreError, ensure_experiment, step_run_tag,
+    JOB_KIND, STEP_KIND, STEP_TAG, StoreError, ensure_experiment,
 )
 from pipeline.core.world import WorldError, load_worlds
 from jobs import EXAMPLE_WORLD, TOY, cli_command, run_cli, step_runs, store_runs, toy_config

@@ -12,16 +12,12 @@ from pathlib import Path
 import mlflow
 import pytest
 
-from pipeline.workflow.config import ConfigError
 from pipeline.workflow.evaluation import PartialRecords
 from pipeline.workflow.finetune import discard_incomplete_checkpoints
-from pipeline.lm.models import ModelLoadError, ModelSettings
-from pipeline.workflow.job import run_job
 from pipeline.workflow.steps import ARTIFACTS_TAG, get_or_run
 from pipeline.workflow.tracking import (
-    EPISODES_ARTIFACT, JOB_KIND, KIND_TAG, STEP_KIND, STEP_TAG, StoreError, ensure_experiment, step_run_tag,
+    JOB_KIND, STEP_KIND, STEP_TAG, ensure_experiment, step_run_tag,
 )
-from pipeline.core.world import WorldError, load_worlds
 from jobs import KILLABLE, TOY, complete_checkpoints, eval_metrics, kill_when, loss_curve, partial_lines, read_episodes, run_cli, step_runs, store_runs
 
 

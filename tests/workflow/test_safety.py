@@ -2,21 +2,11 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import pytest
 from conftest import ROOT
 
-from pipeline.workflow.config import ConfigError
-from pipeline.workflow.evaluation import PartialRecords
-from pipeline.workflow.finetune import discard_incomplete_checkpoints
-from pipeline.lm.models import ModelLoadError, ModelSettings
-from pipeline.workflow.job import run_job
-from pipeline.workflow.steps import ARTIFACTS_TAG, get_or_run
-from pipeline.workflow.tracking import (
-    EPISODES_ARTIFACT, JOB_KIND, KIND_TAG, STEP_KIND, STEP_TAG, StoreError, ensure_experiment, step_run_tag,
-)
-from pipeline.core.world import WorldError, load_worlds
+from pipeline.lm.models import ModelSettings
 from jobs import toy_config
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import inspect
 from functools import lru_cache
-from typing import Iterable, Sequence
+from typing import Callable, Iterable, Sequence
 
 import torch
 from transformers import DynamicCache
@@ -18,7 +18,8 @@ from transformers import DynamicCache
 from pipeline.core.world import World
 from pipeline.lm.chat import ChatFormat, TextTokenizer, encode_prompt, stop_ids
 from pipeline.lm.decoding.loop import (
-    Continuation, EpisodeResult, Generation, HistorySequences, HistoryStrategy, MoveChooser, Request, context_error,
+    Continuation, EpisodeResult, Generation, HistorySequences, HistoryStrategy, MoveChooser, Request, StopReason,
+    context_error,
     generation, play_episodes,
 )
 
