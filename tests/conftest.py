@@ -17,8 +17,10 @@ ROOT = Path(__file__).resolve().parents[1]   # the repository
 TOY = ("data=toy", "model=toy", "train=toy", "eval=toy")
 
 
-def compose_job(root, *overrides, name: str = "config", config_dir: Path | None = None):
-    """THE way tests compose a job's config: the toy presets, a store under ``root``, then ``overrides``."""
+def compose_job(root, *overrides, name: str = "config", config_dir: Path | None = None, toy: bool = True,
+                return_hydra_config: bool = False):
+    """THE way tests compose a job's config: the toy presets (unless ``toy=False``), a store under ``root``
+    (unless None), then ``overrides``; ``name`` and ``config_dir`` pick another primary config (a sweep)."""
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
@@ -27,7 +29,8 @@ def compose_job(root, *overrides, name: str = "config", config_dir: Path | None 
     register_configs()
     GlobalHydra.instance().clear()
     with initialize_config_dir(str(config_dir or ROOT / "conf"), version_base="1.3"):
-        return compose(name, overrides=[*TOY, f"tracking.root={root}", *overrides])
+        prefix = [*(TOY if toy else ()), *([f"tracking.root={root}"] if root is not None else [])]
+        return compose(name, overrides=[*prefix, *overrides], return_hydra_config=return_hydra_config)
 
 
 def _paper_test() -> Path | None:
@@ -56,7 +59,7 @@ def worlds(max_size: int = 9) -> st.SearchStrategy[World]:
 
 @pytest.fixture
 def example_world() -> World:
-    """The paper's worked example (SPEC 2): grid (0, 0)-(3, 2), pit (3, 0), walls (1, 1), (2, 2)."""
+    """The paper's worked example (docs/spec.md §2): grid (0, 0)-(3, 2), pit (3, 0), walls (1, 1), (2, 2)."""
     return World(
         size_x=4,
         size_y=3,
@@ -84,7 +87,7 @@ def paper_worlds(paper_test_file) -> list[World]:
     return load_worlds(paper_test_file)
 
 
-# SPEC 2-3 golden strings for the worked example, character for character.
+# docs/spec.md §2-3 golden strings for the worked example, character for character.
 GOLDEN_TURN_3 = (
     "Grid is from (0, 0) to (3, 2). Goal: (3, 2)\nCurrent: (0, 0)\nThe pit is at (3, 0). The wall is at (1, 1), "
     "and (2, 2).\nCurrent:\n(0, 0)\nPossible:\n(0, 1)\nup\n(1, 0)\nright"

@@ -1,4 +1,4 @@
-"""The reachable-setting environment: one world, moves in, observations and outcomes out (SPEC 4)."""
+"""The reachable-setting environment: one world, moves in, observations and outcomes out (docs/spec.md §4)."""
 
 from __future__ import annotations
 

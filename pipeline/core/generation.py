@@ -1,4 +1,4 @@
-"""Random world generation as the paper does it (SPEC 1), seeded per world, and world statistics."""
+"""Random world generation as the paper does it (docs/spec.md §1), seeded per world, and world statistics."""
 
 from __future__ import annotations
 

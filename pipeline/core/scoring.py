@@ -1,4 +1,4 @@
-"""Parsing model answers and grading optimal-setting plans (SPEC 4). Nothing here raises on model text."""
+"""Parsing model answers and grading optimal-setting plans (docs/spec.md §4). Nothing here raises on model text."""
 
 from __future__ import annotations
 

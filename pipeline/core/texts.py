@@ -1,4 +1,4 @@
-"""The texts of a world: task prompt, observations, cognitive maps and answers, conversations (SPEC 2-3)."""
+"""The texts of a world: task prompt, observations, cognitive maps and answers, conversations (docs/spec.md §2-3)."""
 
 from __future__ import annotations
 
@@ -49,7 +49,7 @@ def _listing(kind: str, cells: tuple[Cell, ...]) -> str:
 
 
 def task_text(world: World) -> str:
-    """The task part of the third human turn (SPEC 2.3), ending in a newline; the observation follows."""
+    """The task part of the third human turn (docs/spec.md §2.3), ending in a newline; the observation follows."""
     return (
         f"Grid is from {cell_text((world.x0, world.y0))} to {cell_text((world.x1, world.y1))}. "
         f"Goal: {cell_text(world.goal)}\n"
@@ -59,7 +59,7 @@ def task_text(world: World) -> str:
 
 
 def observation(world: World, cell: Cell) -> str:
-    """What the agent sees at `cell`: its position and the free neighbours, in the MOVES order (SPEC 2.4)."""
+    """What the agent sees at `cell`: its position and the free neighbours, in the MOVES order (docs/spec.md §2.4)."""
     lines = ["Current:", cell_text(cell), "Possible:"]
     for move in MOVES:
         target = step(cell, move)
@@ -88,7 +88,7 @@ def cognitive_map(
     """The Thought section of a map variant, `Thought:` first: BFS steps, then Backtrack if switched on.
 
     BFS runs level by level from the start (fwd) or the goal (bwd) until the other end is visited;
-    a neighbour is new if free and not visited before this step (SPEC 3). With ``named`` (not in the
+    a neighbour is new if free and not visited before this step (docs/spec.md §3). With ``named`` (not in the
     paper) each expanded state's neighbours follow a ``From (x, y):`` line naming it.
     """
     check_choice("direction", direction, DIRECTIONS)
@@ -226,7 +226,7 @@ def _answer(world: World, direction: str, variant: str, mode: str, moves: list[s
 def conversation(
     world: World, direction: str, variant: str, mode: str, seed: int = 0, prompt: str = "paper"
 ) -> list[dict[str, str]]:
-    """The whole training conversation (SPEC 2): prompt, first answer and, when reachable, the walk."""
+    """The whole training conversation (docs/spec.md §2): prompt, first answer and, when reachable, the walk."""
     check(direction, variant, mode)
     moves = _moves(world, variant, seed)
     turns = prompt_turns(world, prompt)

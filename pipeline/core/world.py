@@ -1,4 +1,4 @@
-"""Gridworld worlds: the record, its validation, its shortest path, and JSONL storage (SPEC 1).
+"""Gridworld worlds: the record, its validation, its shortest path, and JSONL storage (docs/spec.md §1).
 
 Pure standard library: no I/O beyond `load_worlds` / `save_worlds`, no torch.
 """
@@ -36,7 +36,7 @@ _KINDS = {_WALL: "wall", _PIT: "pit"}
 
 
 class WorldError(ValueError):
-    """A world that breaks SPEC 1 (bad size, misplaced cell, unreachable goal, ambiguous path...)."""
+    """A world that breaks docs/spec.md §1 (bad size, misplaced cell, unreachable goal, ambiguous path...)."""
 
 
 def step(cell: Cell, move: str) -> Cell:

@@ -11,7 +11,7 @@ from pipeline.core.variants import PAPER_ROWS
 from pipeline.report.tables import MISSING, REACHABLE_OUTCOMES, SUCCESS_TABLES
 
 SEED_FOOTNOTE = (
-    "Cells: our success rate, its 95% Wilson interval in brackets, the paper's number (SPEC 5) after "
+    "Cells: our success rate, its 95% Wilson interval in brackets, the paper's number (docs/spec.md §5) after "
     "'paper'. With several seeds the rate is the mean of the per-seed rates, the interval the Wilson "
     "interval of all episodes pooled over seeds (it ignores seed-to-seed variance), and the per-seed "
     "range follows in braces. Episodes that could not run count as failures. 'not run' = no finished "
@@ -98,7 +98,7 @@ MCNEMAR_NOTE = (
     "only_variant / only_reference: worlds solved by one and not the other. p_value: two-sided exact "
     "McNemar test (binomial test of the discordant pairs at 1/2).")
 GRADED_NOTE = (
-    "Optimal setting, graded (SPEC 4): the share of episodes whose plan parsed, stayed valid (never left "
+    "Optimal setting, graded (docs/spec.md §4): the share of episodes whose plan parsed, stayed valid (never left "
     "the grid or hit an obstacle), reached the goal, was optimal (success), and whose map was exact; "
     "rates are means over seeds. first_error_*: quartiles, over wrong maps, of the first line (0-based, "
     "in the whole answer) where the answer departs from the golden one.")

@@ -30,7 +30,7 @@ PAPER_SUCCESS: dict[tuple[str, str], tuple[float, float]] = {
 
 
 def paper_success(mode: str, variant: str, direction: str) -> float:
-    """The paper's success rate for a cell (SPEC 5), nan where the paper has none."""
+    """The paper's success rate for a cell (docs/spec.md §5), nan where the paper has none."""
     pair = PAPER_SUCCESS.get((mode, variant))
     if pair is None:
         return math.nan

@@ -192,7 +192,7 @@ def mcnemar_table(cells: Cells) -> pd.DataFrame:
 
 
 def graded_table(cells: Cells) -> pd.DataFrame:
-    """Optimal setting, graded (SPEC 4): parsed, valid, reaches goal, success, map exact, first map error."""
+    """Optimal setting, graded (docs/spec.md §4): parsed, valid, reaches goal, success, map exact, first map error."""
     rows = []
     for subset in SUBSETS:
         for direction, variant in cells.present("optimal"):

@@ -161,7 +161,7 @@ def test_paper_worlds_are_corner_to_corner_trees(paper_worlds):
 
 
 def test_paper_up_right_only_share(paper_worlds):
-    """SPEC 1 quirk: about 55% of the paper's test worlds are solvable with up/right moves only."""
+    """docs/spec.md §1 quirk: about 55% of the paper's test worlds are solvable with up/right moves only."""
     share = sum(world_stats(w).up_right_only for w in paper_worlds) / len(paper_worlds)
     print(f"paper test worlds solvable with up/right only: {share:.1%}")
     assert 0.50 <= share <= 0.60

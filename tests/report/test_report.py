@@ -241,7 +241,7 @@ def test_subsets(built):
 
 
 def test_paper_numbers_match_spec():
-    spec = {  # SPEC 5, (mode, variant): (FWD, BWD)
+    spec = {  # docs/spec.md §5, (mode, variant): (FWD, BWD)
         ("optimal", "none"): (0.190, 0.190), ("optimal", "cot"): (0.252, 0.265),
         ("optimal", "marking-deadend"): (0.585, 0.705), ("optimal", "no-marking"): (0.618, 0.765),
         ("reachable", "none"): (0.321, 0.321), ("reachable", "cot"): (0.339, 0.287),

@@ -3,24 +3,21 @@
 from pathlib import Path
 
 import pytest
-from hydra import compose, initialize_config_dir
-from hydra.core.global_hydra import GlobalHydra
 from omegaconf import OmegaConf
 
 from pipeline.workflow.config import ConfigError, UndefinedCell, register_configs, validate, variant_name
 from pipeline.core.variants import PAPER_MAP_VARIANTS, PAPER_VARIANTS
 
-from conftest import ROOT
+from conftest import ROOT, compose_job
 CONF, SWEEPS = ROOT / "conf", ROOT / "sweeps"
 register_configs()
 
 
 def _compose(overrides=(), name="config", sweeps=False, hydra_node=False):
-    GlobalHydra.instance().clear()
     # As `--config-dir sweeps --config-name NAME`: the sweep file is primary, conf/ stays searchable.
     extra = [f"hydra.searchpath=[file://{CONF}]"] if sweeps else []
-    with initialize_config_dir(str(SWEEPS if sweeps else CONF), version_base="1.3"):
-        return compose(name, overrides=[*extra, *overrides], return_hydra_config=hydra_node)
+    return compose_job(None, *extra, *overrides, name=name, config_dir=SWEEPS if sweeps else CONF, toy=False,
+                       return_hydra_config=hydra_node)
 
 
 def _options(group: str) -> list[str]:
