@@ -282,7 +282,16 @@ def _remove(path: Path) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """Resolve (and so fetch and cache) the named paper files; print each one's path, sha256 and source."""
-    names = (sys.argv[1:] if argv is None else argv) or list(PAPER_FILES)
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python -m pipeline.workflow.paper_data",
+                                     description="Fetch the paper's released files into the cache (or find them "
+                                                 "through their overrides) and print where they are.")
+    parser.add_argument("names", nargs="*", metavar="NAME", help=f"{' or '.join(PAPER_FILES)} (default: both)")
+    names = parser.parse_args(argv).names or list(PAPER_FILES)
+    unknown = [name for name in names if name not in PAPER_FILES]
+    if unknown:
+        parser.error(f"unknown file {unknown[0]!r}; allowed: {', '.join(PAPER_FILES)}")
     try:
         for name in names:
             found = resolve(name)

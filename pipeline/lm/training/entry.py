@@ -74,7 +74,7 @@ def launch(request: TrainRequest, env: dict[str, str] | None = None) -> TrainRes
 
 def main(argv: Sequence[str] | None = None) -> None:
     """``python -m pipeline.lm.training --request request.json`` (or under ``accelerate launch -m``)."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m pipeline.lm.training", description=__doc__.splitlines()[0])
     parser.add_argument("--request", required=True, help="a TrainRequest saved as JSON")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO)
