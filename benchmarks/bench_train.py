@@ -46,8 +46,11 @@ from omegaconf import OmegaConf
 from transformers import TrainerCallback
 
 from pipeline.lm.chat import WORD_LEVEL_FORMAT, encode_conversation
-from pipeline.lm.training.trainer import TrainSettings, finetune
-from pipeline.core.generation import GeneratorConfig, generate_worlds
+from pipeline.lm.models import ModelSettings
+from pipeline.workflow.data_build import DataSettings
+from pipeline.lm.training.settings import TrainSettings
+from pipeline.lm.training.trainer import finetune
+from pipeline.core.generation import generate_worlds
 from pipeline.lm.models import build_scratch_model
 from flops import count_parameters, training_flops
 from pipeline.core.texts import conversation
@@ -111,11 +114,14 @@ class StepClock(TrainerCallback):
         return statistics.median(n / t for t, n in self.steps[skip:])
 
 
+def preset(settings_class, path):
+    """A preset yaml as the job reads it: what it lists, merged onto its settings class's defaults."""
+    return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(settings_class), OmegaConf.load(path)))
+
+
 def cpu_conversations(n: int, seed: int, prompt: str = "task") -> list[list[dict]]:
     """What the default job trains on (conf/data/cpu.yaml sizes; BWD marking-deadend, optimal setting)."""
-    data = OmegaConf.load(ROOT / "conf" / "data" / "cpu.yaml")
-    gen = GeneratorConfig(size_x=tuple(data.train_size_x), size_y=tuple(data.train_size_y), frame=data.frame,
-                          p_pit=tuple(data.p_pit))
+    gen = preset(DataSettings, ROOT / "conf" / "data" / "cpu.yaml").generator_config("train")
     return [conversation(w, "bwd", "marking-deadend", "optimal", prompt=prompt) for w in generate_worlds(n, seed, gen)]
 
 
@@ -147,9 +153,9 @@ def main() -> None:
         parser.error(f"--skip {args.skip} must be at least 0 and below --steps {args.steps}")
     transformers.logging.set_verbosity_error()
 
-    model_cfg, train_cfg = OmegaConf.load(args.model), OmegaConf.load(args.train)
+    model_cfg, train_cfg = preset(ModelSettings, args.model), preset(TrainSettings, args.train)
     make = cpu_conversations if args.data == "cpu" else paper_conversations
-    prompt = str(model_cfg.get("prompt", "paper"))
+    prompt = model_cfg.prompt
     sets = {prompt: make(args.conversations, args.seed, prompt)}
     if prompt != "paper":  # the same worlds with the paper's instruction turns: what the prompt switch saves
         sets["paper"] = make(args.conversations, args.seed, "paper")
@@ -158,13 +164,13 @@ def main() -> None:
     lengths = [len(encode_conversation(tokenizer, WORD_LEVEL_FORMAT, c)[0]) for c in conversations]
     model_kwargs = dict(hidden_size=model_cfg.hidden_size, num_layers=model_cfg.num_layers,
                         num_heads=model_cfg.num_heads, intermediate_size=model_cfg.intermediate_size,
-                        attn_implementation=model_cfg.get("attn_implementation", "sdpa"),
+                        attn_implementation=model_cfg.attn_implementation,
                         max_length=max(len(encode_conversation(tokenizer, WORD_LEVEL_FORMAT, c)[0])
                                        for texts in sets.values() for c in texts), seed=args.seed)
     probe = build_scratch_model(tokenizer, **model_kwargs)
     flops_per_real_token = training_flops(probe, lengths) / sum(lengths)
     precision = "bf16" if train_cfg.bf16 else "fp32"
-    scope = str(train_cfg.get("torch_compile", "none"))
+    scope = train_cfg.torch_compile.value
     print(device_line(args.threads))
     print(f"data ({args.data}, prompt {prompt}): {len(conversations)} conversations, tokens min {min(lengths)} "
           f"median {statistics.median(lengths):.0f} mean {statistics.fmean(lengths):.0f} max {max(lengths)}; vocab "
@@ -200,15 +206,16 @@ def main() -> None:
         mean_tokens = statistics.fmean(run_lengths)
         settings = TrainSettings(
             max_steps=args.steps, per_device_batch_size=train_cfg.per_device_batch_size,
-            learning_rate=train_cfg.learning_rate, packing=packing, bf16=bf16, max_length=max(run_lengths),
+            learning_rate=train_cfg.learning_rate, packing=packing, bf16=bf16,
             pad_to_multiple_of=train_cfg.pad_to_multiple_of,
             report_to=(), logging_steps=args.steps, save_steps=10 * args.steps, torch_threads=args.threads,
-            seed=args.seed, torch_compile=compile_scope,
+            torch_compile=compile_scope,
         )
         clock = StepClock()
         with tempfile.TemporaryDirectory() as out:
             model = build_scratch_model(tokenizer, **model_kwargs)
-            result = finetune(model, tokenizer, WORD_LEVEL_FORMAT, texts, settings, out, callbacks=[clock])
+            result = finetune(model, tokenizer, WORD_LEVEL_FORMAT, texts, settings, out, seed=args.seed,
+                              max_length=max(run_lengths), callbacks=[clock])
         steady = clock.steady(args.skip)
         rates[name] = (result.tokens_per_second, steady)
         # Steady time for all the steps, against the time they took: what compiling (or warming up) cost.
