@@ -42,7 +42,7 @@ ROOT = Path(__file__).resolve().parents[1]
 CHECKS = ("env", "job-default", "job-hf-bf16", "job-fsdp", "fsdp-resume", "vllm", "tests", "bench-train",
           "bench-decode")
 # The word-level chat format for the local model's own tokenizer, as Hydra overrides.
-WORD_CHAT = [f"model.chat_format.{key}='{value}'" for key, value in asdict(WORD_LEVEL_FORMAT).items()]
+WORD_CHAT = [f"model.chat_format.{key}='{value}'" for key, value in asdict(WORD_LEVEL_FORMAT).items() if value is not None]
 ENV_SCRIPT = """
 import torch, transformers, accelerate, mlflow, hydra
 print("torch", torch.__version__, "cuda", torch.version.cuda, "| transformers", transformers.__version__,

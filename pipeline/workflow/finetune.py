@@ -98,7 +98,7 @@ def log_model(model: ModelSettings, model_dir: str) -> None:
     import transformers
 
     if model.log_model == "transformers":
-        import mlflow.transformers
+        import mlflow.transformers as mlflow_transformers  # `as`: binds no local `mlflow` over the module's
         import torch
 
         from pipeline.lm.models import load_model, load_tokenizer
@@ -111,7 +111,7 @@ def log_model(model: ModelSettings, model_dir: str) -> None:
         level = quiet.level
         quiet.setLevel(logging.ERROR)  # no model card or licence to look up for a model trained here
         try:
-            mlflow.transformers.log_model(
+            mlflow_transformers.log_model(
                 {"model": loaded, "tokenizer": tokenizer}, name="model", task="text-generation",
                 pip_requirements=[f"torch=={torch.__version__.split('+')[0]}",
                                   f"transformers=={transformers.__version__}"],

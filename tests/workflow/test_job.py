@@ -129,6 +129,19 @@ def test_smoke_sweep_runs_the_whole_grid(tmp_path):
     assert (tmp_path / "report").is_dir()
 
 
+def test_a_large_models_logged_model_is_a_reference_to_the_runs_weights(tmp_path):
+    # model.log_model=reference (the hf and llama3_8b presets): no second copy of the weights in the store.
+    cfg = _cfg(tmp_path, "variant=none", "eval.n_worlds=1", "model.log_model=reference")
+    run_job(cfg)
+    job = _job_runs(cfg)[0]
+    finetune_id = job.data.tags[step_run_tag("finetune")]
+    (model,) = mlflow.search_logged_models(experiment_ids=[job.info.experiment_id], output_format="list",
+                                           filter_string=f"source_run_id = '{finetune_id}'")
+    assert model.params["weights"] == f"runs:/{finetune_id}/model"
+    # Only an MLmodel file: no weights copied.
+    assert [f.path for f in mlflow.artifacts.list_artifacts(artifact_uri=model.artifact_location)] == ["artifacts/MLmodel"]
+
+
 @pytest.mark.slow
 def test_checkpoint_curve_is_logged_by_training_step(tmp_path):
     cfg = _cfg(tmp_path, "variant=none", "train.max_steps=4", "train.save_steps=2", "train.log_checkpoints=true",
