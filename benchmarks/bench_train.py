@@ -46,7 +46,7 @@ from omegaconf import OmegaConf
 from transformers import TrainerCallback
 
 from pipeline.lm.chat import WORD_LEVEL_FORMAT, encode_conversation
-from pipeline.lm.models import ModelSettings
+from pipeline.lm.model_settings import ModelSettings
 from pipeline.workflow.data_build import DataSettings
 from pipeline.lm.training.settings import TrainSettings
 from pipeline.lm.training.trainer import finetune

@@ -19,9 +19,10 @@ from omegaconf import MISSING, DictConfig, OmegaConf
 
 from pipeline.core.checks import SettingError
 from pipeline.core.variants import BASELINES, DIRECTIONS, MODES, UndefinedCombination, VariantError, check, variant_for
-from pipeline.lm.models import ModelKind, ModelSettings
+from pipeline.lm.model_settings import ModelKind, ModelSettings
 from pipeline.lm.training.settings import CompileMode, TrainSettings
-from pipeline.workflow.data_build import DataSettings, world_file
+from pipeline.workflow.data_build import DataSettings, world_files
+from pipeline.workflow.paper_data import ResolvedFile
 from pipeline.workflow.paper_data import PaperDataError
 from pipeline.workflow.evaluation import EvalSettings
 from pipeline.workflow.tracking import default_tracking_uri
@@ -87,6 +88,7 @@ class JobSettings:
     model: ModelSettings
     train: TrainSettings
     eval: EvalSettings
+    files: dict[str, ResolvedFile | None]   # the splits' world files, resolved (None: generated)
 
 
 def variant_name(cfg: DictConfig) -> str:
@@ -130,30 +132,25 @@ def validate(cfg: DictConfig) -> JobSettings:
                 f"its kernels as Python extensions and needs {' and '.join(missing)}; install them (Debian: apt "
                 "install g++ python3-dev), point $CXX at a compiler, or set train.torch_compile=none"
             )
-    if data.test_file:
-        _check_test_file(data, model)
-    if data.train_file:
-        try:
-            world_file(data, "train")
-        except (FileNotFoundError, PaperDataError) as error:
-            raise ConfigError(str(error)) from None
+    try:
+        files = world_files(data)
+    except (FileNotFoundError, PaperDataError) as error:
+        raise ConfigError(str(error)) from None
+    if files["test"] is not None:
+        _check_test_file(data, model, files["test"])
     if model.kind is ModelKind.hf:
         path = Path(model.path).expanduser()
         if not path.is_dir() or not (path / "config.json").is_file() or not any(path.glob("*.safetensors")):
             raise ConfigError(f"model.path={model.path!r}: expected a local directory with config.json and "
                               "*.safetensors weights (models load from safetensors only)")
-    return JobSettings(variant, data, model, train, evaluation)
+    return JobSettings(variant, data, model, train, evaluation, files)
 
 
-def _check_test_file(data: DataSettings, model: ModelSettings) -> None:
+def _check_test_file(data: DataSettings, model: ModelSettings, found: ResolvedFile) -> None:
     """The test file exists, holds data.n_test worlds, and (for a model trained from scratch, whose
     vocabulary holds the cells of data.frame) no world reaches outside the frame."""
     from pipeline.core.world import WorldError, load_worlds
 
-    try:
-        found = world_file(data, "test")
-    except (FileNotFoundError, PaperDataError) as error:
-        raise ConfigError(str(error)) from None
     try:
         worlds = load_worlds(found.path)
     except WorldError as error:

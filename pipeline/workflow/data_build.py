@@ -113,8 +113,13 @@ def world_file(data: DataSettings, split: str) -> ResolvedFile | None:
     return ResolvedFile(path, file_sha256(path), "explicit", False)
 
 
-def _from_file(data: DataSettings, split: str, n: int) -> list[World] | None:
-    found = world_file(data, split)
+def world_files(data: DataSettings) -> dict[str, ResolvedFile | None]:
+    """Both splits' files, resolved once (each resolution hashes its file)."""
+    return {split: world_file(data, split) for split in ("train", "test")}
+
+
+def _from_file(data: DataSettings, split: str, found: ResolvedFile | None) -> list[World] | None:
+    n = data.n_test if split == "test" else data.n_train
     if found is None:
         return None
     worlds = load_worlds(found.path)
@@ -124,13 +129,15 @@ def _from_file(data: DataSettings, split: str, n: int) -> list[World] | None:
     return worlds[:n]
 
 
-def build_splits(data: DataSettings) -> tuple[list[World], list[World]]:
-    """(train, test) worlds for a data config: each split generated or taken from its file; a generated train
-    split is disjoint from the test split."""
-    test = _from_file(data, "test", data.n_test)
+def build_splits(data: DataSettings, files: dict[str, ResolvedFile | None] | None = None
+                 ) -> tuple[list[World], list[World]]:
+    """(train, test) worlds for a data config: each split generated or taken from its file (``files``: already
+    resolved by `world_files`); a generated train split is disjoint from the test split."""
+    files = world_files(data) if files is None else files
+    test = _from_file(data, "test", files["test"])
     if test is None:
         test = generate_worlds(data.n_test, data.seed, data.generator_config("test"), split="test", workers=data.workers)
-    train = _from_file(data, "train", data.n_train)
+    train = _from_file(data, "train", files["train"])
     if train is None:
         exclude = frozenset(world.key() for world in test)
         train = generate_worlds(data.n_train, data.seed, data.generator_config("train"), split="train", exclude=exclude,
@@ -202,14 +209,15 @@ def dataset_sha256(out_dir: str | Path) -> str:
 
 
 # ---------------------------------------------------------------------------------------------------- the step
-def run_data_build(settings: DataSettings, texts: TextSettings, step_dir: Path) -> None:
-    """The data-build step's body (inside its MLflow run): build, write and log the dataset."""
+def run_data_build(settings: DataSettings, texts: TextSettings, files: dict[str, ResolvedFile | None],
+                   step_dir: Path) -> None:
+    """The data-build step's body (inside its MLflow run): build, write and log the dataset. ``files``: the
+    splits' files as `world_files` resolved them."""
     log_settings(asdict(settings), "data")
-    for split in ("train", "test"):
-        found = world_file(settings, split)
+    for split, found in files.items():
         if found is not None:  # which file, exactly (the paper's train file has no published checksum)
             mlflow.set_tags({f"{split}_file": str(found.path), f"{split}_file_sha256": found.sha256})
-    train, test = build_splits(settings)
+    train, test = build_splits(settings, files)
     out = step_dir / "dataset"
     summary = write_dataset(out, train, test, texts, settings.train_max)
     mlflow.set_tag("dataset_sha256", summary["sha256"])

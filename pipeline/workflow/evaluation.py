@@ -22,7 +22,7 @@ from pipeline.core.episodes import metrics, optimal_episode, reachable_episode
 from pipeline.core.texts import prompt_turns
 from pipeline.core.world import World, load_worlds
 from pipeline.lm.decoding import BACKENDS, Decoder, make_decoder
-from pipeline.lm.models import ModelSettings
+from pipeline.lm.model_settings import ModelSettings
 from pipeline.workflow.data_build import TEST_CONVERSATIONS, TEST_STATS, TEST_WORLDS, TextSettings, log_step_dataset
 from pipeline.workflow.steps import StepRun
 from pipeline.workflow.tracking import CHECKPOINTS_ARTIFACT, CURVE_EPISODES_ARTIFACT, CURVE_METRIC, EPISODES_ARTIFACT

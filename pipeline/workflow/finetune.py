@@ -12,10 +12,9 @@ from pathlib import Path
 import mlflow
 
 from pipeline.lm.chat import read_conversations
-from pipeline.lm.models import ModelSettings, make_tokenizer
-from pipeline.lm.training.entry import TrainRequest, launch, train
+from pipeline.lm.model_settings import ModelSettings
 from pipeline.lm.training.settings import TrainSettings
-from pipeline.lm.training.trainer import CHECKPOINTS_DIR, TrainResult
+from pipeline.lm.training.result import CHECKPOINTS_DIR, TrainResult
 from pipeline.workflow.data_build import TRAIN_CONVERSATIONS, TextSettings, log_step_dataset
 from pipeline.workflow.steps import StepRun
 from pipeline.workflow.tracking import CHECKPOINTS_ARTIFACT, log_settings
@@ -49,6 +48,10 @@ def run_training(model: ModelSettings, settings: TrainSettings, seed: int, frame
                  step_dir: Path) -> TrainResult:
     """Train on the conversations at ``train_file`` into ``step_dir``, resuming from its last complete
     checkpoint if an earlier run was interrupted."""
+    # torch and transformers only when there is training to do (not for a reused step, nor at config time).
+    from pipeline.lm.models import make_tokenizer
+    from pipeline.lm.training.entry import TrainRequest, launch, train
+
     discard_incomplete_checkpoints(step_dir)
     conversations = read_conversations(train_file)
     tokenizer = make_tokenizer(model, (turn["value"] for turns in conversations for turn in turns), frame)

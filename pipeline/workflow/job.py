@@ -19,7 +19,7 @@ from pipeline.core.variants import PAPER_ROWS
 from pipeline.core.checks import SettingError
 from pipeline.core.world import WorldError
 from pipeline.workflow.config import ConfigError, JobSettings, UndefinedCell, config_hash, register_configs, validate
-from pipeline.workflow.data_build import TEST_CONVERSATIONS, TRAIN_CONVERSATIONS, TextSettings, log_step_dataset, run_data_build, world_file
+from pipeline.workflow.data_build import TEST_CONVERSATIONS, TRAIN_CONVERSATIONS, TextSettings, log_step_dataset, run_data_build
 from pipeline.workflow.evaluation import run_eval
 from pipeline.workflow.finetune import run_finetune_step
 from pipeline.workflow.steps import StepRun, clear_inherited_run, get_or_run
@@ -68,15 +68,10 @@ class PrepareStore(Callback):
 
 
 # ---------------------------------------------------------------------------------------------------- hashes
-def _file_digests(data) -> list[str | None]:
-    """The digests of the files the splits come from (None: generated)."""
-    return [None if found is None else found.sha256 for found in (world_file(data, "test"), world_file(data, "train"))]
-
-
 def step_hashes(job: JobSettings, seed: int, texts: TextSettings) -> dict[str, str]:
     """The identity of each step: what decides its output, and its inputs' identities."""
-    data = config_hash("data-build", STEP_VERSIONS["data-build"], asdict(job.data), asdict(texts),
-                       *_file_digests(job.data))
+    digests = [None if found is None else found.sha256 for found in (job.files["test"], job.files["train"])]
+    data = config_hash("data-build", STEP_VERSIONS["data-build"], asdict(job.data), asdict(texts), *digests)
     finetune = config_hash("finetune", STEP_VERSIONS["finetune"], job.model.to_dict(), job.train.to_dict(), seed, data)
     evaluation = config_hash("eval", STEP_VERSIONS["eval"], asdict(job.eval), finetune, data)
     return {"data-build": data, "finetune": finetune, "eval": evaluation}
@@ -119,7 +114,7 @@ def run_job(cfg: DictConfig) -> dict | None:
             log.info("%s: %s run %s", name, "reused" if done.reused else "ran", done.run_id)
             return done
 
-        data = step("data-build", lambda d: run_data_build(job.data, texts, d))
+        data = step("data-build", lambda d: run_data_build(job.data, texts, job.files, d))
         # The job's own row in the runs table names its data too (the step runs below it hold the same).
         log_step_dataset(data, texts, TRAIN_CONVERSATIONS, "train", "training")
         log_step_dataset(data, texts, TEST_CONVERSATIONS, "test", "evaluation")

@@ -14,8 +14,10 @@ from pipeline.lm.training.batches import LengthGroupedBatches, RightPadCollator,
 from pipeline.lm.training.compile import cpu_has_bf16, dynamo_environment as _dynamo_environment
 from pipeline.lm.training.entry import TrainRequest, main
 from pipeline.lm.training.settings import TrainSettings
-from pipeline.lm.training.trainer import RESULT_FILE, _training_arguments, finetune
-from pipeline.lm.models import ModelSettings, build_scratch_model, load_chat_format, load_model
+from pipeline.lm.training.result import RESULT_FILE
+from pipeline.lm.training.trainer import _training_arguments, finetune
+from pipeline.lm.model_settings import ModelSettings
+from pipeline.lm.models import build_scratch_model, load_chat_format, load_model
 from pipeline.lm.tokenizer import build_word_tokenizer
 
 TINY = dict(hidden_size=32, num_layers=2, num_heads=2, intermediate_size=64, max_length=512)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 from conftest import ROOT
 
-from pipeline.lm.models import ModelSettings
+from pipeline.lm.model_settings import ModelSettings
 from jobs import toy_config
 
 

@@ -14,10 +14,12 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Sequence
 
-from pipeline.lm.chat import ChatFormat, read_conversations
-from pipeline.lm.models import ModelSettings, load_tokenizer, make_model
+from pipeline.lm.chat import read_conversations
+from pipeline.lm.model_settings import ModelSettings
+from pipeline.lm.models import load_tokenizer, make_model
 from pipeline.lm.training.settings import TrainSettings
-from pipeline.lm.training.trainer import RESULT_FILE, TrainResult, finetune
+from pipeline.lm.training.result import RESULT_FILE, TrainResult
+from pipeline.lm.training.trainer import finetune
 
 log = logging.getLogger(__name__)
 
@@ -36,8 +38,7 @@ class TrainRequest:
     output_dir: str
 
     def save(self, path: str | Path) -> Path:
-        plain = {"model": {**self.model.to_dict(), "chat_format": asdict(self.model.chat_format)},
-                 "train": self.train.to_dict(), "seed": self.seed, "data": self.data,
+        plain = {"model": self.model.to_dict(), "train": self.train.to_dict(), "seed": self.seed, "data": self.data,
                  "tokenizer_dir": self.tokenizer_dir, "output_dir": self.output_dir}
         Path(path).write_text(json.dumps(plain, indent=2) + "\n")
         return Path(path)
@@ -45,9 +46,7 @@ class TrainRequest:
     @classmethod
     def load(cls, path: str | Path) -> "TrainRequest":
         plain = json.loads(Path(path).read_text())
-        model = dict(plain["model"])
-        model["chat_format"] = ChatFormat(**model["chat_format"])
-        return cls(model=ModelSettings(**model), train=TrainSettings.from_dict(plain["train"]), seed=plain["seed"],
+        return cls(model=ModelSettings(**plain["model"]), train=TrainSettings.from_dict(plain["train"]), seed=plain["seed"],
                    data=plain["data"], tokenizer_dir=plain["tokenizer_dir"], output_dir=plain["output_dir"])
 
 

@@ -13,7 +13,6 @@ import dataclasses
 import logging
 import os
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
 
@@ -28,11 +27,11 @@ from pipeline.lm.training.batches import (
     ConversationDataset, LengthGroupedBatches, RightPadCollator, split_eval, tokenize_conversations,
 )
 from pipeline.lm.training.compile import compiled_blocks, dynamo_environment, use_bf16
+from pipeline.lm.training.result import CHECKPOINTS_DIR, MODEL_DIR, TrainResult
 from pipeline.lm.training.settings import CompileMode, TrainSettings
 
 log = logging.getLogger(__name__)
 
-CHECKPOINTS_DIR, MODEL_DIR, RESULT_FILE = "checkpoints", "model", "train_result.json"
 
 
 class BarProgress(ProgressCallback):
@@ -66,25 +65,6 @@ class _PackingTrainer(Trainer):
     def _get_train_sampler(self, train_dataset=None):
         dataset = train_dataset if train_dataset is not None else self.train_dataset
         return LengthGroupedBatches(dataset.lengths, self.args.per_device_train_batch_size)
-
-
-@dataclass
-class TrainResult:
-    """What a fine-tuning run produced and how fast."""
-
-    final_loss: float | None          # the last logged training loss
-    mean_loss: float                  # mean training loss of this session (transformers' train_loss)
-    token_accuracy: float | None      # argmax accuracy on held-out gpt tokens (None: no eval split)
-    tokens_trained: int               # real (non-padding) tokens over the whole run, resumed part included
-    real_token_fraction: float        # real tokens / tokens computed, over the whole run
-    tokens_per_second: float          # real tokens per second of this session
-    train_seconds: float              # wall time of this session's training loop
-    global_step: int
-    model_dir: str
-    checkpoint_steps: list[int] = field(default_factory=list)
-    dropped: int = 0                  # conversations over max_length, not trained on
-    resumed_from: str | None = None
-    parameters: int = 0               # the model's parameters (a tied embedding counted once)
 
 
 @torch.no_grad()

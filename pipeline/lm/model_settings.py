@@ -1,0 +1,78 @@
+"""The model's settings: its kind and size (or where it is), its context, its chat format and prompt form.
+
+Kept apart from `pipeline.lm.models` (torch and transformers) so the config can be built and checked without
+importing either.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields
+from enum import Enum
+from typing import Optional
+
+from pipeline.core.checks import SettingError, require
+from pipeline.core.texts import PROMPTS
+from pipeline.lm.chat import ChatFormat
+
+DTYPES = ("float32", "bfloat16", "float16")
+# transformers' attention kernels; "flash_attention_2" needs the flash-attn package and a GPU.
+ATTENTION_IMPLEMENTATIONS = ("sdpa", "eager", "flash_attention_2")
+# How the finetune step logs the model in MLflow: the transformers flavour (weights copied) or a reference to
+# the run's model/ artifacts (for large models).
+LOG_MODEL_CHOICES = ("transformers", "reference")
+
+
+class ModelKind(str, Enum):
+    scratch = "scratch"   # a small Llama built here, with the word-level tokenizer
+    hf = "hf"             # a pretrained causal LM from a local directory
+
+
+@dataclass
+class ModelSettings:
+    """The model: its kind and size (or where it is), its context, its chat format and prompt form.
+
+    ``max_length`` is THE context length: a scratch model's positions, the longest conversation training
+    keeps, and the bound decoding stays within. ``prompt`` is what the model is prompted with
+    (`pipeline.core.texts.PROMPTS`): the paper's three turns, or the task turn alone (for models trained
+    from scratch, which cannot use the fixed English instruction). The defaults are the base of every
+    ``conf/model/*.yaml`` preset.
+    """
+
+    kind: ModelKind = ModelKind.scratch
+    path: Optional[str] = None       # kind=hf: a local directory with a causal LM and its tokenizer
+    hidden_size: int = 128
+    num_layers: int = 4
+    num_heads: int = 2
+    intermediate_size: int = 512
+    max_length: int = 2048
+    dtype: str = "float32"
+    attn_implementation: str = "sdpa"
+    trust_remote_code: bool = False
+    chat_format: ChatFormat = field(default_factory=ChatFormat)
+    prompt: str = "task"
+    log_model: str = "transformers"
+
+    def __post_init__(self) -> None:
+        try:
+            self.kind = ModelKind(self.kind.value if isinstance(self.kind, Enum) else self.kind)
+        except ValueError:
+            raise SettingError(f"kind={self.kind!r} is not allowed; expected one of scratch, hf") from None
+        if isinstance(self.chat_format, dict):
+            self.chat_format = ChatFormat(**self.chat_format)
+        require(self.dtype in DTYPES, "dtype", self.dtype, f"one of {', '.join(DTYPES)}")
+        require(self.attn_implementation in ATTENTION_IMPLEMENTATIONS, "attn_implementation",
+                self.attn_implementation, f"one of {', '.join(ATTENTION_IMPLEMENTATIONS)}")
+        require(self.prompt in PROMPTS, "prompt", self.prompt, f"one of {', '.join(PROMPTS)}")
+        require(self.log_model in LOG_MODEL_CHOICES, "log_model", self.log_model, f"one of {', '.join(LOG_MODEL_CHOICES)}")
+        for name in ("hidden_size", "num_layers", "num_heads", "intermediate_size", "max_length"):
+            value = getattr(self, name)
+            require(isinstance(value, int) and value > 0, name, value, "a positive integer")
+        require(self.hidden_size % self.num_heads == 0, "hidden_size", self.hidden_size,
+                f"a multiple of num_heads={self.num_heads}")
+        require(self.kind is ModelKind.scratch or bool(self.path), "path", self.path,
+                "a local directory with a causal LM and its tokenizer (kind=hf needs one)")
+
+    def to_dict(self) -> dict:
+        """Plain JSON-ready values (the chat format as a dict, the kind as its string)."""
+        values = {f.name: getattr(self, f.name) for f in fields(self)}
+        return {**values, "kind": self.kind.value, "chat_format": asdict(self.chat_format)}
