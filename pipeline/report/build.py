@@ -27,7 +27,8 @@ from pipeline.core.variants import MAP_VARIANTS
 from pipeline.report.load import ReportError, StoreData, load_store, open_experiment
 from pipeline.report.markdown import SEED_FOOTNOTE, render_success, render_table3, write_tables
 from pipeline.report.tables import REFERENCE_VARIANT, SUCCESS_TABLES, Cells, compute_tables, rate_stats
-from pipeline.workflow.tracking import KIND_TAG, REPORT_KIND, default_tracking_uri
+from pipeline.report.cli import add_store_arguments, store_of
+from pipeline.workflow.tracking import KIND_TAG, REPORT_KIND
 
 log = logging.getLogger(__name__)
 
@@ -194,17 +195,16 @@ class ReportCallback(Callback):
 def main(argv: list[str] | None = None) -> int:
     """``python -m pipeline.report``: build the report from the MLflow store; exit code 2 on a bad store."""
     parser = argparse.ArgumentParser(prog="python -m pipeline.report", description=__doc__.split("\n")[0])
-    parser.add_argument("--tracking-uri", default=default_tracking_uri(),
-                        help="MLflow tracking URI (default: %(default)s)")
-    parser.add_argument("--experiment", default="cogmap", help="experiment name (default: %(default)s)")
-    parser.add_argument("--out", default="outputs/report", help="output folder (default: %(default)s)")
+    add_store_arguments(parser)
+    parser.add_argument("--out", default=None, help="output folder (default: report/ under tracking.root)")
     parser.add_argument("--no-log-run", action="store_true",
                         help="write the files only, without a report run in MLflow")
     args = parser.parse_args(argv)
-    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")  # one bar per eval run
+    tracking_uri, experiment = store_of(parser, args)
+    root = next((item.partition("=")[2] for item in args.store if item.startswith("tracking.root=")), "outputs")
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
     try:
-        result = build_report(args.tracking_uri, args.experiment, args.out,
+        result = build_report(tracking_uri, experiment, args.out or str(Path(root) / "report"),
                               log_run=not args.no_log_run)
     except ReportError as err:
         print(f"error: {err}", file=sys.stderr)

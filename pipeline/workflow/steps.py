@@ -5,18 +5,22 @@ A per-hash file lock makes this exact under parallel jobs: the holder either fin
 runs the step, and any RUNNING run with the same hash that it finds belonged to a process that died
 (killed jobs release their locks), so it is marked KILLED rather than left looking alive, and so is the
 job run it was nested under (same process, same death). A FINISHED run whose artifacts have gone missing
-from the artifact store is not reused: the step runs again. Each step gets
+from the artifact store, or changed since the step wrote them (each step records the SHA-256 of every file
+it logged), is not reused: the step runs again, and says why in one line. Each step gets
 a stable working folder (``<work_dir>/<step>/<hash>``) for checkpoints and partial records, so a rerun
 of an interrupted step resumes instead of starting over.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
+from urllib.parse import unquote, urlparse
 
 import mlflow
 from mlflow.entities import RunStatus
@@ -24,6 +28,8 @@ from mlflow.entities import RunStatus
 from pipeline.workflow.tracking import HASH_TAG, KIND_TAG, STEP_KIND, STEP_TAG, file_lock
 
 NOTE_TAG = "cogmap.note"
+# The SHA-256 of every file a step logged, written as the run's last artifact; a reuse checks them.
+MANIFEST = "cogmap_manifest.json"
 # How many top-level artifacts the step logged; a reused run must still have some if it had any.
 ARTIFACTS_TAG = "cogmap.n_artifacts"
 _PARENT_TAG = "mlflow.parentRunId"
@@ -72,12 +78,55 @@ def _artifacts_present(run) -> bool:
         return False
 
 
+def _local_artifacts(run) -> Path | None:
+    """The run's artifact folder when the artifact store is this file system (None for a remote store)."""
+    parsed = urlparse(run.info.artifact_uri)
+    return Path(unquote(parsed.path)) if parsed.scheme in ("", "file") else None
+
+
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def artifact_manifest(folder: Path) -> dict[str, str]:
+    """Relative path -> SHA-256 of every file under ``folder`` but the manifest itself, in path order."""
+    files = sorted(p for p in folder.rglob("*") if p.is_file() and p.name != MANIFEST)
+    return {p.relative_to(folder).as_posix(): _sha256(p) for p in files}
+
+
+def changed_artifacts(run) -> str | None:
+    """Why a finished run's artifacts can no longer be trusted (a file missing, added or changed since the
+    step wrote its manifest), or None. Runs without a manifest, or on a remote store, are checked only for
+    being there at all."""
+    folder = _local_artifacts(run)
+    if folder is None or not (folder / MANIFEST).is_file():
+        return None if _artifacts_present(run) else "its artifacts are missing from the store"
+    try:
+        recorded = json.loads((folder / MANIFEST).read_text())
+    except (OSError, ValueError) as error:
+        return f"its artifact manifest is unreadable ({error})"
+    now = artifact_manifest(folder) if folder.is_dir() else {}
+    for name, digest in recorded.items():
+        if name not in now:
+            return f"its artifact {name} is missing"
+        if now[name] != digest:
+            return f"its artifact {name} changed since the step finished (SHA-256 {now[name][:12]}, recorded {digest[:12]})"
+    return None
+
+
 def find_finished(experiment_id: str, step: str, step_hash: str) -> str | None:
-    """The id of the latest FINISHED run of ``step`` with ``step_hash`` whose artifacts are all there."""
+    """The id of the latest FINISHED run of ``step`` with ``step_hash`` whose artifacts are all there and
+    unchanged; a run that fails the check is noted in the store and on stdout, and not reused."""
     for run in _runs_with_hash(experiment_id, step, step_hash, "FINISHED"):
-        if _artifacts_present(run):
+        reason = changed_artifacts(run)
+        if reason is None:
             return run.info.run_id
-        mlflow.MlflowClient().set_tag(run.info.run_id, NOTE_TAG, "artifacts missing from the store: not reused")
+        mlflow.MlflowClient().set_tag(run.info.run_id, NOTE_TAG, f"not reused: {reason}")
+        print(f"[{step}] not reusing run {run.info.run_id}: {reason}; running the step again", flush=True)
     return None
 
 
@@ -128,7 +177,17 @@ def get_or_run(
             body(step_dir)
             mlflow.log_metric("step_seconds", time.perf_counter() - started)
             mlflow.set_tag(ARTIFACTS_TAG, str(len(mlflow.MlflowClient().list_artifacts(run.info.run_id))))
+            _write_manifest(mlflow.get_run(run.info.run_id), step_dir)
         return StepRun(step, run.info.run_id, step_hash, reused=False)
+
+
+def _write_manifest(run, step_dir: Path) -> None:
+    folder = _local_artifacts(run)
+    if folder is None or not folder.is_dir():
+        return  # a remote artifact store keeps its own checksums
+    target = step_dir / MANIFEST
+    target.write_text(json.dumps(artifact_manifest(folder), indent=1, sort_keys=True) + "\n")
+    mlflow.log_artifact(str(target))
 
 
 def clear_inherited_run() -> None:

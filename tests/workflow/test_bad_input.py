@@ -193,3 +193,26 @@ def test_a_sweep_with_a_bad_job_finishes_the_others_and_keeps_their_results(tmp_
     assert [r.info.status for r in jobs] == ["FINISHED", "FINISHED"]
     assert sorted(r.data.metrics["n_episodes"] for r in jobs) == [2.0, 3.0]
     assert all(r.info.status == "FINISHED" for r in store_runs(tmp_path, STEP_KIND))
+
+
+def test_a_test_file_with_a_repeated_world_is_refused_naming_the_lines(tmp_path):
+    """Repeated worlds would be scored as distinct episodes (counted twice, intervals too narrow)."""
+    other = _with(world_size_x=2, world_size_y=2, goal=[1, 1], wall=[[1, 0]], pit=[])
+    path = _world_file(tmp_path, "repeats.jsonl", EXAMPLE_WORLD, other, EXAMPLE_WORLD)
+    with pytest.raises(ConfigError, match=r"data.test_file=.*1 world\(s\) repeat an earlier one \(line 3 repeats "
+                                          r"line 1\); allowed: a file of distinct worlds"):
+        run_job(toy_config(tmp_path, f"data.test_file={path}", "data.n_test=3"))
+    assert not (tmp_path / "mlflow.db").exists()
+
+
+@pytest.mark.parametrize("override, named", [("+trian.lr=5", "trian"), ("+train.lrr=5", "train.lrr"),
+                                             ("+model.chat_format.bos=x", None)])
+def test_an_added_key_the_schema_lacks_is_refused_before_any_work(tmp_path, override, named):
+    """`+key=value` adds any key to the structured config; a typo must not run with the key ignored."""
+    if named is None:  # '+' on a key the schema has is Hydra's own error ("already exists"), at compose time
+        with pytest.raises(Exception, match="already"):
+            toy_config(tmp_path, override)
+        return
+    with pytest.raises(ConfigError, match=rf"unknown config key\(s\) {named} \(added with '\+'\?\)"):
+        run_job(toy_config(tmp_path, override))
+    assert not (tmp_path / "mlflow.db").exists()

@@ -55,6 +55,8 @@ def test_kill_9_during_finetune_and_eval_then_rerun_equals_an_uninterrupted_run(
     first, second = (loss_curve(run.info.run_id) for run in finetunes)
     assert first == {step: reference_curve[step] for step in first} and set(first) >= {s for s in (2, 4) if s <= resumed_at}
     assert second == {step: reference_curve[step] for step in reference_curve if step > resumed_at}
+    resumed_log = (killed / "killed-recorded episodes.log").read_text()
+    assert "There were missing keys" not in resumed_log  # the tied head is stored once: not an alarm
 
     # 3rd attempt: finishes, reusing data-build and finetune and the episodes already recorded.
     done = run_cli(killed, *KILLABLE)

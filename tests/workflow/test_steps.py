@@ -69,3 +69,33 @@ def test_a_run_left_running_by_a_dead_process_is_marked_killed(store):
     done = _run(store, lambda d: None)
     assert client.get_run(stale.info.run_id).info.status == "KILLED"
     assert client.get_run(done.run_id).info.status == "FINISHED"
+
+
+@pytest.mark.parametrize("damage", ["truncate", "delete", "edit"])
+def test_a_finished_steps_damaged_artifact_is_detected_and_the_step_reruns(store, capsys, damage):
+    """Each step records every artifact's SHA-256; a reuse checks them, so a file cut off mid-line, deleted or
+    edited behind a FINISHED run makes the step run again (one line says why), and the new run is reused."""
+    def body(step_dir):
+        (step_dir / "episodes.jsonl").write_text('{"world_index": 0, "success": true}\n{"world_index": 1}\n')
+        (step_dir / "other.txt").write_text("kept")
+        mlflow.log_artifact(str(step_dir / "episodes.jsonl"))
+        mlflow.log_artifact(str(step_dir / "other.txt"))
+
+    first = _run(store, body, step_hash=f"h-{damage}")
+    assert _run(store, body, step_hash=f"h-{damage}").reused
+    (episodes,) = [p for p in (store[1].parent).rglob("episodes.jsonl") if first.run_id in str(p)]
+    if damage == "truncate":
+        episodes.write_bytes(episodes.read_bytes()[:30])
+    elif damage == "delete":
+        episodes.unlink()
+    else:
+        episodes.write_text(episodes.read_text().replace("true", "false"))
+    capsys.readouterr()
+    second = _run(store, body, step_hash=f"h-{damage}")
+    assert not second.reused and second.run_id != first.run_id
+    reason = "is missing" if damage == "delete" else "changed since the step finished"
+    (line,) = [line for line in capsys.readouterr().out.splitlines() if line.startswith("[data-build]")]
+    assert f"not reusing run {first.run_id}: its artifact episodes.jsonl {reason}" in line
+    assert mlflow.get_run(first.run_id).data.tags["cogmap.note"].startswith("not reused: its artifact episodes.jsonl")
+    again = _run(store, body, step_hash=f"h-{damage}")
+    assert again.reused and again.run_id == second.run_id

@@ -59,7 +59,21 @@ class BarProgress(ProgressCallback):
     _started: float | None = None
 
 
-class _PackingTrainer(Trainer):
+class _Trainer(Trainer):
+    """Trainer, quiet about the one "missing key" that is not missing: a checkpoint of a model whose output
+    head is tied to its input embedding holds the weight once, and resuming it warned ``There were missing
+    keys in the checkpoint model loaded: ['lm_head.weight']`` (harmless: the head is re-tied)."""
+
+    def _issue_warnings_after_load(self, load_result) -> None:
+        tied = getattr(self.model.config, "tie_word_embeddings", False)
+        if tied and set(load_result.missing_keys) == {"lm_head.weight"} and not load_result.unexpected_keys:
+            self.model.tie_weights()
+            log.info("resumed checkpoint: lm_head.weight is tied to the input embedding (stored once)")
+            return
+        super()._issue_warnings_after_load(load_result)
+
+
+class _PackingTrainer(_Trainer):
     """Trainer drawing its training batches from `LengthGroupedBatches`."""
 
     def _get_train_sampler(self, train_dataset=None):
@@ -190,7 +204,7 @@ def _finetune(model, tokenizer, fmt, conversations, settings, output_dir, seed, 
                          f"({train_data.dropped} dropped)")
 
     with dynamo_environment():
-        trainer = (_PackingTrainer if settings.packing else Trainer)(
+        trainer = (_PackingTrainer if settings.packing else _Trainer)(
             model=model,
             args=_training_arguments(settings, checkpoints, seed),
             train_dataset=train_data,
