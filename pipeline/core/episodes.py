@@ -54,13 +54,14 @@ def _stats(index: int, stats: dict) -> dict:
 
 
 def optimal_episode(index: int, world: World, stats: dict, text: str, error: str | None, direction: str,
-                    variant: str) -> Episode:
-    """Score one single-turn answer (graded); ``error``: the answer could not be generated."""
+                    variant: str, steps: str = "numbered") -> Episode:
+    """Score one single-turn answer (graded); ``error``: the answer could not be generated. ``steps``: how the
+    golden map writes its step headers (`texts.STEP_HEADERS`)."""
     if error is not None:
         return Episode(**_stats(index, stats), success=False, outcome="error", n_moves=0, parsed=False, valid=False,
                        reaches_goal=False, answers=[text], error=error)
-    score = score_optimal(world, text, direction, variant)
-    wrong = first_wrong_line(world, direction, variant, text)
+    score = score_optimal(world, text, direction, variant, steps)
+    wrong = first_wrong_line(world, direction, variant, text, steps)
     return Episode(
         **_stats(index, stats), success=bool(score.optimal), outcome="success" if score.optimal else "fail",
         n_moves=len(score.moves), moves=list(score.moves), parsed=score.parsed, valid=score.valid,

@@ -14,7 +14,7 @@ import re
 from dataclasses import asdict, dataclass
 
 from pipeline.core.scoring import _as_text, first_difference
-from pipeline.core.texts import golden_answer
+from pipeline.core.texts import golden_answer, is_step_header
 from pipeline.core.variants import MAP_VARIANTS
 from pipeline.core.world import MOVES, Cell, World, step
 
@@ -88,10 +88,11 @@ def _label_error(expected: str, got: str | None) -> str | None:
     return "wrong move" if expected in MOVES and got in MOVES else None
 
 
-def first_wrong_line(world: World, direction: str, variant: str, text: object) -> ErrorSite | None:
+def first_wrong_line(world: World, direction: str, variant: str, text: object, steps: str = "numbered"
+                     ) -> ErrorSite | None:
     """The first line of ``text`` that departs from the golden optimal-setting answer, classified; None if
     the answer is the golden one. ``direction`` and ``variant`` are checked like `texts.answer`'s."""
-    golden = golden_answer(world, direction, variant, "optimal").split("\n")
+    golden = golden_answer(world, direction, variant, "optimal", steps=steps).split("\n")
     produced = _as_text(text).split("\n")
     index = first_difference(produced, golden)
     if index is None:
@@ -105,7 +106,7 @@ def first_wrong_line(world: World, direction: str, variant: str, text: object) -
         if line in _HEADERS:
             section = _HEADERS[line]
             kind = "section header"
-        elif section == "thought" and line.startswith("Step "):
+        elif section == "thought" and is_step_header(line):
             bfs_step, in_step, named_states, kind = (bfs_step or 0) + 1, 0, -1, "step header"
         elif section == "thought" and line.startswith("From "):
             named_states += 1

@@ -118,12 +118,12 @@ def first_difference(produced: list[str], golden: list[str]) -> int | None:
     return None if len(produced) == len(golden) else min(len(produced), len(golden))
 
 
-def score_optimal(world: World, text: object, direction: str, variant: str) -> PlanScore:
+def score_optimal(world: World, text: object, direction: str, variant: str, steps: str = "numbered") -> PlanScore:
     """Grade an optimal-setting answer against the world's unique shortest path and golden answer.
 
     `direction` and `variant` are checked (ValueError names the allowed ones); the text never raises.
     """
-    golden = golden_answer(world, direction, variant, "optimal")
+    golden = golden_answer(world, direction, variant, "optimal", steps=steps)
     parsed = parse_answer(text)
     moves = plan_moves(parsed)
     valid, reaches = _walk(world, moves) if moves is not None else (False, False)
@@ -131,7 +131,7 @@ def score_optimal(world: World, text: object, direction: str, variant: str) -> P
     map_exact = None
     if variant in MAP_VARIANTS:
         # thought_lines includes the "Thought:" header, which the parser strips.
-        map_exact = parsed.thought is not None and _thought_of(world, direction, variant) == parsed.thought
+        map_exact = parsed.thought is not None and _thought_of(world, direction, variant, steps) == parsed.thought
     return PlanScore(
         parsed=moves is not None,
         valid=valid,
@@ -145,7 +145,7 @@ def score_optimal(world: World, text: object, direction: str, variant: str) -> P
     )
 
 
-def _thought_of(world: World, direction: str, variant: str) -> list[str]:
+def _thought_of(world: World, direction: str, variant: str, steps: str) -> list[str]:
     """The golden Thought section as the parser returns it: map lines up to Backtrack, no header."""
-    lines = thought_lines(world, direction, variant)[1:]
+    lines = thought_lines(world, direction, variant, steps)[1:]
     return lines[: lines.index("Backtrack:")] if "Backtrack:" in lines else lines

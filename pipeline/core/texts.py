@@ -13,6 +13,21 @@ from pipeline.core.world import MOVES, Cell, World, move_between, step
 # nothing from it, yet pays for its tokens in every step; pretrained models keep the paper's prompt.
 PROMPTS: tuple[str, ...] = ("paper", "task")
 
+# How a map's (and CoT's) step headers are written: the paper's `Step k:`, or `Step:` with no number
+# (not in the paper). A model trained from scratch learns the number words only up to the longest training
+# map, so a larger test world would need words it never saw; plain headers hold no such word.
+STEP_HEADERS: tuple[str, ...] = ("numbered", "plain")
+
+
+def step_header(level: int, steps: str = "numbered") -> str:
+    """The header line of BFS step ``level`` (1-based): `Step k:` (numbered) or `Step:` (plain)."""
+    return f"Step {level}:" if steps == "numbered" else "Step:"
+
+
+def is_step_header(line: str) -> bool:
+    """Whether a Thought line is a step header, in either form."""
+    return line == "Step:" or (line.startswith("Step ") and line.endswith(":"))
+
 INSTRUCTION = (
     "You are given a rectangular gridworld, where you can move up, down, left, or right as long as each of "
     "your x, y coordinates are within 0 to the x, y size of the grid. If you move up, your y coordinate "
@@ -83,15 +98,18 @@ def prompt_turns(world: World, prompt: str = "paper") -> list[dict[str, str]]:
 
 
 def cognitive_map(
-    world: World, direction: str, *, all_moves: bool, marking: bool, backtrack: bool, named: bool = False
+    world: World, direction: str, *, all_moves: bool, marking: bool, backtrack: bool, named: bool = False,
+    steps: str = "numbered",
 ) -> list[str]:
     """The Thought section of a map variant, `Thought:` first: BFS steps, then Backtrack if switched on.
 
     BFS runs level by level from the start (fwd) or the goal (bwd) until the other end is visited;
     a neighbour is new if free and not visited before this step (docs/spec.md §3). With ``named`` (not in the
-    paper) each expanded state's neighbours follow a ``From (x, y):`` line naming it.
+    paper) each expanded state's neighbours follow a ``From (x, y):`` line naming it; ``steps`` is how the
+    step headers are written (`STEP_HEADERS`).
     """
     check_choice("direction", direction, DIRECTIONS)
+    check_choice("steps", steps, STEP_HEADERS)
     root, target = (world.start, world.goal) if direction == "fwd" else (world.goal, world.start)
     blocked, offsets, labels = world.padded, world.offsets(), _LABELS[direction]
     moves = tuple(zip(offsets, labels))
@@ -105,7 +123,7 @@ def cognitive_map(
     level = 0
     while not visited[target_i]:
         level += 1
-        lines.append(f"Step {level}:")
+        lines.append(step_header(level, steps))
         following = []
         for state in frontier:
             if named:
@@ -165,19 +183,21 @@ def backtrack_lines(world: World, direction: str) -> list[str]:
     return lines
 
 
-def cot_thought(world: World, direction: str) -> list[str]:
+def cot_thought(world: World, direction: str, steps: str = "numbered") -> list[str]:
     """The CoT baseline's Thought: empty `Step k:` headers, one per optimal move, then Backtrack."""
-    steps = [f"Step {k}:" for k in range(1, len(world.shortest_path()))]
-    return ["Thought:", *steps, *backtrack_lines(world, direction)]
+    check_choice("steps", steps, STEP_HEADERS)
+    headers = [step_header(k, steps) for k in range(1, len(world.shortest_path()))]
+    return ["Thought:", *headers, *backtrack_lines(world, direction)]
 
 
-def thought_lines(world: World, direction: str, variant: str) -> list[str]:
-    """The Thought section (with Backtrack) of any variant; empty for `none` and `dfs`."""
+def thought_lines(world: World, direction: str, variant: str, steps: str = "numbered") -> list[str]:
+    """The Thought section (with Backtrack) of any variant; empty for `none` and `dfs`. ``steps``: how step
+    headers are written (`STEP_HEADERS`)."""
     check_choice("variant", variant, VARIANTS)
     if variant in MAP_VARIANTS:
-        return cognitive_map(world, direction, **MAP_VARIANTS[variant]._asdict())
+        return cognitive_map(world, direction, **MAP_VARIANTS[variant]._asdict(), steps=steps)
     if variant == "cot":
-        return cot_thought(world, direction)
+        return cot_thought(world, direction, steps)
     check_choice("direction", direction, DIRECTIONS)
     return []
 
@@ -212,25 +232,27 @@ def _moves(world: World, variant: str, seed: int) -> list[str]:
     return dfs_moves(world, seed) if variant == "dfs" else world.optimal_moves()
 
 
-def golden_answer(world: World, direction: str, variant: str, mode: str, seed: int = 0) -> str:
+def golden_answer(world: World, direction: str, variant: str, mode: str, seed: int = 0, steps: str = "numbered") -> str:
     """The first gpt answer: the Thought section, then `Plan:` and all moves, or `Action:` and the first."""
     check(direction, variant, mode)
-    return _answer(world, direction, variant, mode, _moves(world, variant, seed))
+    return _answer(world, direction, variant, mode, _moves(world, variant, seed), steps)
 
 
-def _answer(world: World, direction: str, variant: str, mode: str, moves: list[str]) -> str:
+def _answer(world: World, direction: str, variant: str, mode: str, moves: list[str], steps: str) -> str:
     tail = ["Plan:", *moves] if mode == "optimal" else ["Action:", moves[0]]
-    return "\n".join(thought_lines(world, direction, variant) + tail)
+    return "\n".join(thought_lines(world, direction, variant, steps) + tail)
 
 
 def conversation(
-    world: World, direction: str, variant: str, mode: str, seed: int = 0, prompt: str = "paper"
+    world: World, direction: str, variant: str, mode: str, seed: int = 0, prompt: str = "paper",
+    steps: str = "numbered",
 ) -> list[dict[str, str]]:
-    """The whole training conversation (docs/spec.md §2): prompt, first answer and, when reachable, the walk."""
+    """The whole training conversation (docs/spec.md §2): prompt, first answer and, when reachable, the walk.
+    ``prompt`` and ``steps`` choose the prompt form (`PROMPTS`) and the step headers (`STEP_HEADERS`)."""
     check(direction, variant, mode)
     moves = _moves(world, variant, seed)
     turns = prompt_turns(world, prompt)
-    turns.append({"from": "gpt", "value": _answer(world, direction, variant, mode, moves)})
+    turns.append({"from": "gpt", "value": _answer(world, direction, variant, mode, moves, steps)})
     if mode == "reachable":
         cell = step(world.start, moves[0])
         for move in moves[1:]:

@@ -11,7 +11,7 @@ from enum import Enum
 from typing import Optional
 
 from pipeline.core.checks import SettingError, require
-from pipeline.core.texts import PROMPTS
+from pipeline.core.texts import PROMPTS, STEP_HEADERS
 from pipeline.lm.chat import ChatFormat
 
 DTYPES = ("float32", "bfloat16", "float16")
@@ -20,6 +20,10 @@ ATTENTION_IMPLEMENTATIONS = ("sdpa", "eager", "flash_attention_2")
 # How the finetune step logs the model in MLflow: the transformers flavour (weights copied) or a reference to
 # the run's model/ artifacts (for large models).
 LOG_MODEL_CHOICES = ("transformers", "reference")
+# How a scratch model knows positions: rotary embeddings in every layer (Llama's), in none (NoPE: the causal
+# mask alone tells order; Kazemnejad et al. 2023), or in every other layer starting with the first
+# ("alternate"). The last two build transformers' SmolLM3, a Llama with per-layer RoPE switches.
+POSITIONS = ("rope", "nope", "alternate")
 
 
 class ModelKind(str, Enum):
@@ -50,6 +54,13 @@ class ModelSettings:
     trust_remote_code: bool = False
     chat_format: ChatFormat = field(default_factory=ChatFormat)
     prompt: str = "task"
+    # How the answers' step headers are written (pipeline.core.texts.STEP_HEADERS): the paper's `Step k:`, or
+    # `Step:` (plain: no number word that larger test worlds would need and training never shows).
+    step_headers: str = "numbered"
+    positions: str = "rope"   # POSITIONS; scratch models only
+    # RoPE's base (scratch models): 10000 is Llama's. A small base turns even the slowest rotary pair through
+    # whole periods within the training lengths, so a longer test sequence meets no angle training never saw.
+    rope_theta: float = field(default=10000.0, metadata={"hash_if_set": True})
     log_model: str = "transformers"
 
     def __post_init__(self) -> None:
@@ -63,6 +74,11 @@ class ModelSettings:
         require(self.attn_implementation in ATTENTION_IMPLEMENTATIONS, "attn_implementation",
                 self.attn_implementation, f"one of {', '.join(ATTENTION_IMPLEMENTATIONS)}")
         require(self.prompt in PROMPTS, "prompt", self.prompt, f"one of {', '.join(PROMPTS)}")
+        require(self.step_headers in STEP_HEADERS, "step_headers", self.step_headers, f"one of {', '.join(STEP_HEADERS)}")
+        require(self.positions in POSITIONS, "positions", self.positions, f"one of {', '.join(POSITIONS)}")
+        require(self.rope_theta > 1, "rope_theta", self.rope_theta, "a base above 1")
+        require(self.positions == "rope" or self.kind is ModelKind.scratch, "positions", self.positions,
+                "rope for a pretrained model (kind=hf keeps its own position encoding)")
         require(self.log_model in LOG_MODEL_CHOICES, "log_model", self.log_model, f"one of {', '.join(LOG_MODEL_CHOICES)}")
         for name in ("hidden_size", "num_layers", "num_heads", "intermediate_size", "max_length"):
             value = getattr(self, name)

@@ -19,11 +19,13 @@ from transformers import (
     LlamaConfig,
     LlamaForCausalLM,
     PreTrainedModel,
+    SmolLM3Config,
+    SmolLM3ForCausalLM,
     PreTrainedTokenizerBase,
 )
 
 from pipeline.lm.chat import ChatFormat
-from pipeline.lm.model_settings import ATTENTION_IMPLEMENTATIONS, DTYPES, ModelKind, ModelSettings
+from pipeline.lm.model_settings import ATTENTION_IMPLEMENTATIONS, DTYPES, POSITIONS, ModelKind, ModelSettings
 from pipeline.lm.tokenizer import build_word_tokenizer
 
 CHAT_FORMAT_FILE = "chat_format.json"
@@ -44,7 +46,7 @@ def make_model(settings: ModelSettings, tokenizer: PreTrainedTokenizerBase, *, s
         return build_scratch_model(tokenizer, hidden_size=settings.hidden_size, num_layers=settings.num_layers,
                                    num_heads=settings.num_heads, intermediate_size=settings.intermediate_size,
                                    max_length=settings.max_length, attn_implementation=settings.attn_implementation,
-                                   seed=seed)
+                                   positions=settings.positions, rope_theta=settings.rope_theta, seed=seed)
     return load_model(settings.path, dtype=settings.dtype, trust_remote_code=settings.trust_remote_code,
                       attn_implementation=settings.attn_implementation)
 
@@ -66,16 +68,27 @@ def build_scratch_model(
     intermediate_size: int = 512,
     max_length: int = 2048,
     attn_implementation: str = "sdpa",
+    positions: str = "rope",
+    rope_theta: float = 10000.0,
     seed: int = 0,
-) -> LlamaForCausalLM:
+) -> PreTrainedModel:
     """A randomly initialised fp32 Llama sized for ``tokenizer``; the same seed gives the same weights.
 
-    The global torch RNG is left as it was, so building a model does not shift later random draws.
+    ``positions`` (`POSITIONS`): ``rope`` builds a Llama; ``nope`` and ``alternate`` build the same network as
+    transformers' SmolLM3 (a Llama whose layers each switch RoPE on or off), with RoPE in no layer or in
+    layers 0, 2, ...; ``rope_theta`` is RoPE's base. The global torch RNG is left as it was, so building a model does not shift later draws.
     """
     if hidden_size % num_heads:
         raise ValueError(f"hidden_size={hidden_size} must be a multiple of num_heads={num_heads}")
+    if positions not in POSITIONS:
+        raise ValueError(f"positions={positions!r} is not supported; allowed: {', '.join(POSITIONS)}")
     _check_attention(attn_implementation)
-    config = LlamaConfig(
+    config_class, extra = LlamaConfig, {}
+    if positions != "rope":
+        # SmolLM3's no_rope_layers: 1 = this layer uses RoPE, 0 = it does not.
+        uses_rope = [int(positions == "alternate" and layer % 2 == 0) for layer in range(num_layers)]
+        config_class, extra = SmolLM3Config, {"no_rope_layers": uses_rope, "use_sliding_window": False}
+    config = config_class(
         vocab_size=len(tokenizer),
         hidden_size=hidden_size,
         num_hidden_layers=num_layers,
@@ -88,10 +101,12 @@ def build_scratch_model(
         eos_token_id=tokenizer.eos_token_id,
         tie_word_embeddings=True,
         attn_implementation=attn_implementation,
+        rope_theta=rope_theta,
+        **extra,
     )
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
-        model = LlamaForCausalLM(config)
+        model = (LlamaForCausalLM if positions == "rope" else SmolLM3ForCausalLM)(config)
     return model.to(torch.float32)
 
 

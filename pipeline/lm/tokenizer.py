@@ -39,6 +39,12 @@ def pieces(text: str) -> list[str]:
 _PIECE_RE = re.compile(PIECE_PATTERN)
 
 
+@lru_cache(maxsize=1024)
+def piece_set(text: str) -> frozenset[str]:
+    """The distinct pieces of ``text`` (the words a word-level model must have trained to read or write it)."""
+    return frozenset(_PIECE_RE.findall(text))
+
+
 # Cached: the instruction turn, the longest, repeats in every conversation.
 @lru_cache(maxsize=1024)
 def count_pieces(text: str) -> int:

@@ -20,7 +20,8 @@ from pipeline.core.environment import GridEnv
 from pipeline.core.scoring import _as_text, first_difference
 from pipeline.core.texts import golden_answer, first_human_text
 from pipeline.core.variants import VARIANTS
-from pipeline.workflow.tracking import EPISODES_ARTIFACT, JOB_KIND, KIND_TAG, default_tracking_uri, step_run_tag
+from pipeline.report.cli import add_store_arguments, store_of
+from pipeline.workflow.tracking import EPISODES_ARTIFACT, JOB_KIND, KIND_TAG, step_run_tag
 from pipeline.core.world import World, load_worlds
 
 WIDTH = 30
@@ -59,7 +60,7 @@ def reachable_turns(world: World, moves: Sequence[str], answers: Sequence[str]) 
     return lines
 
 
-def show_episode(record: dict, world: World, direction: str, variant: str, mode: str) -> str:
+def show_episode(record: dict, world: World, direction: str, variant: str, mode: str, steps: str = "numbered") -> str:
     """One episode as text: header, prompt, and the model's answer(s) against the golden one."""
     kind = "interpolated" if record.get("interpolated") else "extrapolated"
     lines = [f"world {record['world_index']} ({world.size_x} x {world.size_y}, {kind}, optimal length "
@@ -68,7 +69,7 @@ def show_episode(record: dict, world: World, direction: str, variant: str, mode:
              "--- task prompt", first_human_text(world)]
     answers = record.get("answers") or []
     if mode == "optimal":
-        golden = golden_answer(world, direction, variant, "optimal")
+        golden = golden_answer(world, direction, variant, "optimal", steps=steps)
         lines += side_by_side(answers[0] if answers else "", golden)
         wrong = record.get("first_wrong_line")
         if wrong:
@@ -122,6 +123,7 @@ def inspect_run(tracking_uri: str, run_id: str, world: int | None = None, failed
         path = client.download_artifacts(evaluation.info.run_id, EPISODES_ARTIFACT, scratch)
         records = [json.loads(line) for line in Path(path).read_text().splitlines() if line.strip()]
     direction = (summary.get("text_spec") or {}).get("direction") or direction
+    steps = (summary.get("text_spec") or {}).get("step_headers") or "numbered"
     if world is not None:
         chosen = [r for r in records if r["world_index"] == world]
         if not chosen:
@@ -133,7 +135,7 @@ def inspect_run(tracking_uri: str, run_id: str, world: int | None = None, failed
             f"{sum(r['success'] for r in records)}/{len(records)} succeeded")
     if not chosen:
         return head + "\nno episode to show" + (" (none failed)" if failed else "")
-    return "\n\n".join([head, *(show_episode(r, worlds[r["world_index"]], direction, variant, mode)
+    return "\n\n".join([head, *(show_episode(r, worlds[r["world_index"]], direction, variant, mode, steps)
                                 for r in chosen)]) + "\n"
 
 
@@ -143,11 +145,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--world", type=int, help="the test world's index (default: the first few)")
     parser.add_argument("--failed", action="store_true", help="only episodes that failed")
     parser.add_argument("--limit", type=int, default=3, help="how many episodes without --world (default 3)")
-    parser.add_argument("--tracking-uri", default=None, help="MLflow store (default: outputs/mlflow.db)")
+    add_store_arguments(parser)
     args = parser.parse_args(argv)
+    tracking_uri, _ = store_of(parser, args)
     try:
-        print(inspect_run(args.tracking_uri or default_tracking_uri(), args.run_id, args.world, args.failed,
-                          args.limit), end="")
+        print(inspect_run(tracking_uri, args.run_id, args.world, args.failed, args.limit), end="")
     except InspectError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2

@@ -101,6 +101,12 @@ def _all_runs(client, experiment_id: str, filter_string: str) -> list:
             return runs
 
 
+def finished_job_runs(client, experiment_id: str) -> list:
+    """Every FINISHED job run of the experiment, oldest first."""
+    runs = _all_runs(client, experiment_id, f"tags.`{KIND_TAG}` = '{JOB_KIND}' and attributes.status = 'FINISHED'")
+    return sorted(runs, key=lambda run: run.info.start_time or 0)
+
+
 def finished_jobs(client, experiment_id: str) -> tuple[list[Job], list[str]]:
     """The latest FINISHED job run per (mode, direction, variant, seed), and notes on what was skipped."""
     runs = _all_runs(client, experiment_id, f"tags.`{KIND_TAG}` = '{JOB_KIND}'")

@@ -10,7 +10,7 @@ import shutil
 import sys
 import sysconfig
 from pathlib import Path
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, is_dataclass
 from enum import Enum
 from typing import Any, Optional
 
@@ -21,7 +21,7 @@ from pipeline.core.checks import SettingError
 from pipeline.core.variants import BASELINES, DIRECTIONS, MODES, UndefinedCombination, VariantError, check, variant_for
 from pipeline.lm.model_settings import ModelKind, ModelSettings
 from pipeline.lm.training.settings import CompileMode, TrainSettings
-from pipeline.workflow.data_build import DataSettings, world_files
+from pipeline.workflow.data_build import DataSettings, repeated_worlds_error, world_files
 from pipeline.workflow.paper_data import ResolvedFile
 from pipeline.workflow.paper_data import PaperDataError
 from pipeline.workflow.evaluation import EvalSettings
@@ -108,9 +108,25 @@ def _section(cfg: DictConfig, name: str):
         raise ConfigError(f"{name}.{error}") from None
 
 
+def unknown_keys(cfg: DictConfig) -> list[str]:
+    """Keys the schema does not have. A plain typo fails at compose time, but ``+key=value`` adds a key to the
+    structured config whatever it is, so ``+trian.lr=5`` would run with the key ignored."""
+    def walk(node, defaults, prefix: str) -> list[str]:
+        if not (isinstance(node, DictConfig) and is_dataclass(defaults)):
+            return []
+        known = {f.name for f in fields(defaults)}
+        return [found for key in node for found in
+                ([prefix + str(key)] if key not in known else walk(node[key], getattr(defaults, key), f"{prefix}{key}."))]
+    return walk(cfg, RunConfig(), "")
+
+
 def validate(cfg: DictConfig) -> JobSettings:
     """Build and check every section (each value is checked once, by its settings class), then what needs
     several sections or the file system. Raises ConfigError naming the bad value."""
+    unknown = unknown_keys(cfg)
+    if unknown:
+        raise ConfigError(f"unknown config key(s) {', '.join(unknown)} (added with '+'?); allowed: the keys that "
+                          "`python -m pipeline.run --cfg job` prints")
     variant = variant_name(cfg)
     try:
         check(Direction(cfg.direction).value, variant, Mode(cfg.mode).value)
@@ -158,6 +174,9 @@ def _check_test_file(data: DataSettings, model: ModelSettings, found: ResolvedFi
     if len(worlds) < data.n_test:
         raise ConfigError(f"data.n_test={data.n_test} but data.test_file={data.test_file!r} holds {len(worlds)} "
                           f"worlds; allowed: 1..{len(worlds)}")
+    error = repeated_worlds_error(f"data.test_file={data.test_file!r}", worlds[: data.n_test])
+    if error:
+        raise ConfigError(error)
     if model.kind is not ModelKind.scratch:
         return
     for index, world in enumerate(worlds[: data.n_test]):

@@ -19,9 +19,9 @@ from tqdm import tqdm
 
 from pipeline.core.generation import GENERATORS, GeneratorConfig, generate_worlds, world_stats
 from pipeline.core.texts import conversation
-from pipeline.core.variants import text_direction
+from pipeline.core.variants import BY_NAME, text_direction
 from pipeline.core.world import World, load_worlds, save_worlds
-from pipeline.lm.tokenizer import count_pieces
+from pipeline.lm.tokenizer import count_pieces, piece_set
 from pipeline.workflow.paper_data import PAPER_WORD, ResolvedFile, file_sha256, resolve
 from pipeline.workflow.steps import StepRun
 from pipeline.workflow.tracking import log_dataset, log_settings
@@ -91,11 +91,16 @@ class TextSettings:
     mode: str
     seed: int = 0
     prompt: str = "paper"   # texts.PROMPTS: the paper's three prompt turns, or the task turn alone
+    step_headers: str = "numbered"   # texts.STEP_HEADERS: `Step k:` (the paper's) or `Step:`
 
     @classmethod
-    def of(cls, direction: str, variant: str, mode: str, seed: int = 0, prompt: str = "paper") -> "TextSettings":
-        # Direction-free variants (NONE, DFS): both directions share one dataset (and model).
-        return cls(text_direction(direction, variant), variant, mode, seed, prompt)
+    def of(cls, direction: str, variant: str, mode: str, seed: int = 0, prompt: str = "paper",
+           step_headers: str = "numbered") -> "TextSettings":
+        # Direction-free variants (NONE, DFS): both directions share one dataset (and model). Step headers
+        # matter only where a Thought has them (maps and CoT).
+        if BY_NAME[variant].direction_free:
+            step_headers = "numbered"
+        return cls(text_direction(direction, variant), variant, mode, seed, prompt, step_headers)
 
 
 def world_file(data: DataSettings, split: str) -> ResolvedFile | None:
@@ -118,6 +123,30 @@ def world_files(data: DataSettings) -> dict[str, ResolvedFile | None]:
     return {split: world_file(data, split) for split in ("train", "test")}
 
 
+def repeated_worlds(worlds: list[World]) -> list[tuple[int, int]]:
+    """(line, line of its first occurrence), 1-based, of every world that repeats an earlier one."""
+    first: dict[tuple, int] = {}
+    repeats = []
+    for line, world in enumerate(worlds, 1):
+        key = world.key()
+        if key in first:
+            repeats.append((line, first[key]))
+        else:
+            first[key] = line
+    return repeats
+
+
+def repeated_worlds_error(setting: str, worlds: list[World]) -> str | None:
+    """The message refusing a split that holds a world twice (its episodes would count twice and its
+    intervals shrink for nothing); None when every world is distinct."""
+    repeats = repeated_worlds(worlds)
+    if not repeats:
+        return None
+    shown = ", ".join(f"line {line} repeats line {earlier}" for line, earlier in repeats[:5])
+    return (f"{setting}: {len(repeats)} world(s) repeat an earlier one ({shown}{', ...' if len(repeats) > 5 else ''}); "
+            "allowed: a file of distinct worlds (drop the repeated lines)")
+
+
 def _from_file(data: DataSettings, split: str, found: ResolvedFile | None) -> list[World] | None:
     n = data.n_test if split == "test" else data.n_train
     if found is None:
@@ -126,6 +155,9 @@ def _from_file(data: DataSettings, split: str, found: ResolvedFile | None) -> li
     if len(worlds) < n:
         raise ValueError(f"data.n_{split}={n} but data.{split}_file={str(found.path)!r} holds {len(worlds)} worlds; "
                          f"allowed: 1..{len(worlds)}")
+    error = repeated_worlds_error(f"data.{split}_file={str(found.path)!r}", worlds[:n]) if split == "test" else None
+    if error:
+        raise ValueError(error)
     return worlds[:n]
 
 
@@ -145,6 +177,18 @@ def build_splits(data: DataSettings, files: dict[str, ResolvedFile | None] | Non
     return train, test
 
 
+VALID_SPLIT = "valid"
+
+
+def validation_worlds(data: DataSettings, n: int, train: list[World], test: list[World]) -> list[World]:
+    """The validation split: ``n`` worlds drawn as generated test worlds are (the test sizes, frame and
+    generator, ``data.seed``) from a stream of their own, and disjoint from both ``train`` and ``test``. Recipes
+    are chosen on it; the test split is then read once per final setting."""
+    exclude = frozenset(world.key() for world in (*train, *test))
+    return generate_worlds(n, data.seed, data.generator_config("test"), split=VALID_SPLIT, exclude=exclude,
+                           workers=data.workers)
+
+
 def _write_jsonl(path: Path, rows: Iterable[dict]) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, "w") as handle:
@@ -157,7 +201,7 @@ def _conversations(worlds: list[World], spec: TextSettings, desc: str) -> Iterab
     for index, world in enumerate(tqdm(worlds, desc=desc, unit="world", leave=False)):
         # Each world's DFS walk gets its own seed, so the walks do not depend on the split's order.
         turns = conversation(world, direction, spec.variant, spec.mode, seed=spec.seed * 1_000_003 + index,
-                             prompt=spec.prompt)
+                             prompt=spec.prompt, steps=spec.step_headers)
         yield {"id": index, "conversations": turns}
 
 
@@ -172,16 +216,25 @@ def write_dataset(out_dir: str | Path, train: list[World], test: list[World], sp
     save_worlds(out / TRAIN_WORLDS, train)
     save_worlds(out / TEST_WORLDS, test)
     token_lengths: list[int] = []
+    train_words: set[str] = set()
+    test_words: list[frozenset[str]] = []
 
     def measured(rows: Iterable[dict]) -> Iterable[dict]:
         for row in rows:
             token_lengths.append(sum(count_pieces(turn["value"]) + 2 for turn in row["conversations"]))
+            for turn in row["conversations"]:
+                train_words.update(piece_set(turn["value"]))
+            yield row
+
+    def words_of(rows: Iterable[dict]) -> Iterable[dict]:
+        for row in rows:
+            test_words.append(frozenset().union(*(piece_set(turn["value"]) for turn in row["conversations"])))
             yield row
 
     _write_jsonl(out / TRAIN_CONVERSATIONS, measured(_conversations(train, spec, "train texts")))
     train_tokens = list(token_lengths)
     # Test conversations are the golden references (the model is prompted with their turns before the first answer).
-    _write_jsonl(out / TEST_CONVERSATIONS, _conversations(test, spec, "test texts"))
+    _write_jsonl(out / TEST_CONVERSATIONS, words_of(_conversations(test, spec, "test texts")))
     test_stats = [asdict(world_stats(world, train_max)) for world in test]
     _write_jsonl(out / TEST_STATS, test_stats)
     summary = {
@@ -193,10 +246,36 @@ def write_dataset(out_dir: str | Path, train: list[World], test: list[World], sp
         "test_path_length": _summary([s["optimal_length"] for s in test_stats]),
         "test_up_right_only": sum(s["up_right_only"] for s in test_stats) / max(len(test_stats), 1),
         "test_interpolated": sum(s["interpolated"] for s in test_stats) / max(len(test_stats), 1),
+        "untrained_words": untrained_words(train_words, test_words),
         "sha256": dataset_sha256(out),
     }
     (out / SUMMARY).write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
     return summary
+
+
+def untrained_words(train_words: set[str], test_words: list[frozenset[str]]) -> dict:
+    """The words (word-level pieces: `pipeline.lm.tokenizer.pieces`) the test conversations hold and no training
+    conversation does: a model trained from scratch has never trained their embeddings, so a test world that
+    needs one fails by construction. ``worlds``: test world indices needing each word; ``n_worlds``: how many
+    test worlds need at least one."""
+    by_word: dict[str, list[int]] = {}
+    for index, words in enumerate(test_words):
+        for word in words - train_words:
+            by_word.setdefault(word, []).append(index)
+    needing = {i for indices in by_word.values() for i in indices}
+    return {"words": {word: len(by_word[word]) for word in sorted(by_word)}, "n_words": len(by_word),
+            "n_worlds": len(needing), "n_test": len(test_words)}
+
+
+def untrained_words_line(found: dict) -> str | None:
+    """The one line data-build prints when the test needs words training never shows (None when it does not)."""
+    if not found["n_words"]:
+        return None
+    shown = sorted(found["words"].items(), key=lambda item: (-item[1], item[0]))
+    names = ", ".join(f"{word!r} ({n})" for word, n in shown[:8]) + (", ..." if len(shown) > 8 else "")
+    return (f"[data-build] {found['n_worlds']} of {found['n_test']} test worlds need words that no training "
+            f"conversation holds ({found['n_words']} words, with the test worlds needing each: {names}); a model "
+            "trained from scratch never trained them")
 
 
 def dataset_sha256(out_dir: str | Path) -> str:
@@ -226,7 +305,12 @@ def run_data_build(settings: DataSettings, texts: TextSettings, files: dict[str,
         "train_tokens_mean": summary["train_tokens"]["mean"], "train_tokens_max": summary["train_tokens"]["max"],
         "test_path_length_mean": summary["test_path_length"]["mean"],
         "test_up_right_only": summary["test_up_right_only"], "test_interpolated": summary["test_interpolated"],
+        "untrained_words": summary["untrained_words"]["n_words"],
+        "test_worlds_untrained_words": summary["untrained_words"]["n_worlds"],
     })
+    line = untrained_words_line(summary["untrained_words"])
+    if line:
+        print(line, flush=True)
     mlflow.log_artifacts(str(out))
     base = mlflow.get_artifact_uri()
     for artifact, split in ((TRAIN_CONVERSATIONS, "train"), (TEST_CONVERSATIONS, "test")):

@@ -9,7 +9,7 @@ alone (the report recomputes its splits from the same records).
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Optional
 
@@ -18,14 +18,20 @@ from tqdm import tqdm
 
 from pipeline.core.checks import SettingError, require
 from pipeline.core.environment import RULES
+from pipeline.core.generation import world_stats
 from pipeline.core.episodes import metrics, optimal_episode, reachable_episode
 from pipeline.core.texts import prompt_turns
 from pipeline.core.world import World, load_worlds
 from pipeline.lm.decoding import BACKENDS, Decoder, make_decoder
 from pipeline.lm.model_settings import ModelSettings
-from pipeline.workflow.data_build import TEST_CONVERSATIONS, TEST_STATS, TEST_WORLDS, TextSettings, log_step_dataset
+from pipeline.workflow.data_build import (
+    TEST_CONVERSATIONS, TEST_STATS, TEST_WORLDS, TRAIN_WORLDS, DataSettings, TextSettings, log_step_dataset,
+    validation_worlds,
+)
 from pipeline.workflow.steps import StepRun
-from pipeline.workflow.tracking import CHECKPOINTS_ARTIFACT, CURVE_EPISODES_ARTIFACT, CURVE_METRIC, EPISODES_ARTIFACT
+from pipeline.workflow.tracking import (
+    CHECKPOINTS_ARTIFACT, CURVE_EPISODES_ARTIFACT, CURVE_METRIC, EPISODES_ARTIFACT, VALID_EPISODES_ARTIFACT, VALID_PREFIX,
+)
 
 
 @dataclass
@@ -44,6 +50,9 @@ class EvalSettings:
     rules: str = "project"
     curve: bool = False
     curve_worlds: int = 50
+    # Also score this many validation worlds (`data_build.validation_worlds`: the test distribution, disjoint
+    # from train and test), logged as valid_* metrics and episodes_valid.jsonl: choose recipes on these.
+    n_valid: int = 0
 
     def __post_init__(self) -> None:
         require(self.backend in BACKENDS, "backend", self.backend, f"one of {', '.join(BACKENDS)}")
@@ -51,6 +60,7 @@ class EvalSettings:
         require(self.n_worlds is None or self.n_worlds >= 1, "n_worlds", self.n_worlds, "at least 1, or null for all")
         for name in ("batch_size", "max_new_tokens", "max_moves", "curve_worlds"):
             require(getattr(self, name) >= 1, name, getattr(self, name), "at least 1")
+        require(self.n_valid >= 0, "n_valid", self.n_valid, "0 (no validation split) or more")
 
 
 class PartialRecords:
@@ -98,6 +108,7 @@ def evaluate(
     chunk_size: int = 64,
     prompt: str = "paper",
     rules: str = "project",
+    steps: str = "numbered",
 ) -> list[dict]:
     """Run every world not yet in ``partial_path`` and return all records in world order.
 
@@ -116,7 +127,8 @@ def evaluate(
             if mode == "optimal":
                 generations = decoder.generate([prompt_turns(worlds[i], prompt) for i in chunk])
                 for i, generation in zip(chunk, generations):
-                    partial.add(optimal_episode(i, worlds[i], stats[i], generation.text, generation.error, direction, variant).to_dict())
+                    partial.add(optimal_episode(i, worlds[i], stats[i], generation.text, generation.error, direction, variant,
+                                              steps).to_dict())
                     progress.update()
             else:
                 def finished(episode, chunk=chunk) -> None:
@@ -133,8 +145,9 @@ def evaluate(
 
 
 def run_eval(settings: EvalSettings, model: ModelSettings, texts: TextSettings, data: StepRun, finetune: StepRun,
-             step_dir: Path) -> None:
-    """The eval step's body (inside its MLflow run): decode, score, and log episodes and metrics."""
+             step_dir: Path, data_settings: DataSettings | None = None) -> None:
+    """The eval step's body (inside its MLflow run): decode, score, and log episodes and metrics; with
+    ``settings.n_valid``, the validation worlds too (``data_settings``: the job's, which they are drawn from)."""
     log_step_dataset(data, texts, TEST_CONVERSATIONS, "test", "evaluation")
     worlds = load_worlds(data.artifact(TEST_WORLDS))
     stats = [json.loads(line) for line in Path(data.artifact(TEST_STATS)).read_text().splitlines()]
@@ -147,8 +160,25 @@ def run_eval(settings: EvalSettings, model: ModelSettings, texts: TextSettings, 
     episodes.write_text("".join(json.dumps(record) + "\n" for record in records))
     mlflow.log_artifact(str(episodes))
     mlflow.log_metrics(metrics(records))
+    if settings.n_valid:
+        _evaluate_validation(settings, model, texts, data, finetune, worlds, data_settings, step_dir)
     if settings.curve:
         _evaluate_curve(settings, model, texts, finetune, worlds, stats, step_dir)
+
+
+def _evaluate_validation(settings: EvalSettings, model: ModelSettings, texts: TextSettings, data: StepRun,
+                         finetune: StepRun, test: list[World], data_settings: DataSettings | None, step_dir: Path) -> None:
+    if data_settings is None:
+        raise SettingError(f"eval.n_valid={settings.n_valid} needs the job's data settings to draw the validation split")
+    train = load_worlds(data.artifact(TRAIN_WORLDS))
+    worlds = validation_worlds(data_settings, settings.n_valid, train, test)
+    stats = [asdict(world_stats(world, data_settings.train_max)) for world in worlds]
+    records = _evaluate_model(settings, model, texts, finetune.artifact("model"), worlds, stats,
+                              step_dir / "episodes_valid.partial.jsonl")
+    episodes = step_dir / VALID_EPISODES_ARTIFACT
+    episodes.write_text("".join(json.dumps(record) + "\n" for record in records))
+    mlflow.log_artifact(str(episodes))
+    mlflow.log_metrics({VALID_PREFIX + key: value for key, value in metrics(records).items()})
 
 
 def _evaluate_model(settings: EvalSettings, model: ModelSettings, texts: TextSettings, model_dir: str,
@@ -157,7 +187,8 @@ def _evaluate_model(settings: EvalSettings, model: ModelSettings, texts: TextSet
                            max_new_tokens=settings.max_new_tokens, dtype=model.dtype,
                            trust_remote_code=model.trust_remote_code, attn_implementation=model.attn_implementation)
     return evaluate(decoder, worlds, stats, mode=texts.mode, direction=texts.direction or "fwd", variant=texts.variant,
-                    max_moves=settings.max_moves, partial_path=partial_path, prompt=texts.prompt, rules=settings.rules)
+                    max_moves=settings.max_moves, partial_path=partial_path, prompt=texts.prompt, rules=settings.rules,
+                    steps=texts.step_headers)
 
 
 def _evaluate_curve(settings: EvalSettings, model: ModelSettings, texts: TextSettings, finetune: StepRun,

@@ -41,6 +41,8 @@ def step_run_tag(step: str) -> str:
 
 
 EPISODES_ARTIFACT = "episodes.jsonl"
+VALID_EPISODES_ARTIFACT = "episodes_valid.jsonl"   # eval run: the validation split's episodes (eval.n_valid)
+VALID_PREFIX = "valid_"                            # the validation split's metrics: valid_success_rate, ...
 CURVE_METRIC = "curve_success_rate"
 CURVE_EPISODES_ARTIFACT = "curve"   # eval run: curve/step-<n>.jsonl, the episodes of each checkpoint
 CHECKPOINTS_ARTIFACT = "checkpoints"  # finetune run: checkpoints/step-<n>/ loadable model dirs (Figure 3)

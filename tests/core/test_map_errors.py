@@ -105,3 +105,20 @@ def test_step_buckets():
 def test_model_text_never_raises(variant, text):
     site = first_wrong_line(WORLD, "fwd", variant, text)
     assert site is None or (site.line in LINE_KINDS and site.neighbour in (None, *NEIGHBOURS))
+
+
+def test_plain_step_headers_count_steps_and_score_like_numbered_ones():
+    """With `Step:` headers the steps are still counted, and a numbered header is the wrong line."""
+    golden = golden_answer(WORLD, "bwd", "marking-deadend", "optimal", steps="plain").split("\n")
+    assert first_wrong_line(WORLD, "bwd", "marking-deadend", "\n".join(golden), steps="plain") is None
+    site = first_wrong_line(WORLD, "bwd", "marking-deadend", "\n".join(golden).replace("Step:", "Step 1:", 1),
+                            steps="plain")
+    assert (site.line, site.step, site.expected, site.got) == ("step header", 1, "Step:", "Step 1:")
+    second = [i for i, line in enumerate(golden) if line == "Step:"][1]
+    lines = list(golden)
+    lines[second + 2] = "cut" if lines[second + 2] != "cut" else "up"
+    site = first_wrong_line(WORLD, "bwd", "marking-deadend", "\n".join(lines), steps="plain")
+    assert (site.line, site.step, site.state) == ("label", 2, 0)
+    numbered = _golden("marking-deadend")
+    assert first_wrong_line(WORLD, "bwd", "marking-deadend", "\n".join(golden)).line == "step header"
+    assert numbered != golden

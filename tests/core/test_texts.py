@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import pytest
 from conftest import worlds
 from hypothesis import given
@@ -16,6 +18,7 @@ from pipeline.core.texts import (
     cognitive_map,
     cot_thought,
     dfs_moves,
+    is_step_header,
     observation,
     prompt_turns,
     task_text,
@@ -255,3 +258,21 @@ def test_named_golden_bwd_marking_deadend():
         "Thought:", "Step 1:", "From (1, 1):", "(1, 2)", "cut", "(1, 0)", "cut", "(0, 1)", "right", "(2, 1)", "cut",
         "Step 2:", "From (0, 1):", "(0, 2)", "cut", "(0, 0)", "up", "(-1, 1)", "cut", "(1, 1)", "cut",
         "Backtrack:", "(0, 0)", "up", "(0, 1)", "right", "(1, 1)", "Plan:", "up", "right"])
+
+
+def test_plain_step_headers_golden(example_world):
+    """`steps="plain"` (not in the paper) writes `Step:` where the paper writes `Step k:`; nothing else moves."""
+    assert golden_answer(example_world, "bwd", "no-all", "optimal", steps="plain") == (
+        "Thought:\nStep:\n(3, 1)\nup\nStep:\n(2, 1)\nright\nStep:\n(2, 0)\nup\nStep:\n(1, 0)\nright\nStep:\n(0, 0)\n"
+        "right\nBacktrack:\n(0, 0)\nright\n(1, 0)\nright\n(2, 0)\nup\n(2, 1)\nright\n(3, 1)\nup\n(3, 2)\n"
+        "Plan:\nright\nright\nup\nright\nup")
+    assert cot_thought(example_world, "fwd", "plain")[:7] == ["Thought:", *["Step:"] * 5, "Backtrack:"]
+    for variant in (*MAP_VARIANTS, "cot"):
+        numbered = golden_answer(example_world, "fwd", variant, "optimal").split("\n")
+        plain = golden_answer(example_world, "fwd", variant, "optimal", steps="plain").split("\n")
+        assert [re.sub(r"^Step \d+:$", "Step:", line) for line in numbered] == plain
+    assert golden_answer(example_world, "fwd", "none", "optimal", steps="plain") == golden_answer(
+        example_world, "fwd", "none", "optimal")
+    assert all(is_step_header(h) for h in ("Step:", "Step 1:", "Step 12:")) and not is_step_header("(1, 2)")
+    with pytest.raises(ValueError, match="unknown steps 'roman'; allowed: numbered, plain"):
+        conversation(example_world, "fwd", "marking-deadend", "optimal", steps="roman")

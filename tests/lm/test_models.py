@@ -106,3 +106,26 @@ def test_chat_format_round_trip(tmp_path):
     assert load_chat_format(tmp_path) == WORD_LEVEL_FORMAT
 
 
+
+
+@pytest.mark.parametrize(("positions", "uses_rope"), [("nope", [0, 0]), ("alternate", [1, 0])])
+@torch.no_grad()
+def test_positions_switch_rope_per_layer_and_round_trip(tokenizer, tmp_path, positions, uses_rope):
+    """`nope`/`alternate` build the same network with RoPE off in some layers: the Llama's parameters, other
+    outputs; position ids reach only the RoPE layers (stretched positions change the alternate model, not the
+    NoPE one); saved and loaded through the Auto classes."""
+    rope = build_scratch_model(tokenizer, **TINY, seed=1).eval()
+    model = build_scratch_model(tokenizer, **TINY, seed=1, positions=positions).eval()
+    assert model.config.no_rope_layers == uses_rope
+    assert [n for n, _ in model.named_parameters()] == [n for n, _ in rope.named_parameters()]
+    assert all(torch.equal(a, b) for a, b in zip(model.parameters(), rope.parameters()))
+    ids = torch.tensor([tokenizer.encode("Grid is from (0, 0) to (3, 2).", add_special_tokens=False)])
+    assert not torch.allclose(model(input_ids=ids).logits, rope(input_ids=ids).logits)
+    stretched = model(input_ids=ids, position_ids=torch.arange(ids.shape[1])[None] * 3).logits
+    assert torch.allclose(stretched, model(input_ids=ids).logits, atol=1e-6) == (positions == "nope")
+    model.save_pretrained(tmp_path)
+    loaded = load_model(tmp_path)
+    assert type(loaded) is type(model) and loaded.config.no_rope_layers == uses_rope
+    torch.testing.assert_close(loaded(input_ids=ids).logits, model(input_ids=ids).logits)
+    with pytest.raises(ValueError, match="positions='alibi' is not supported; allowed: rope, nope, alternate"):
+        build_scratch_model(tokenizer, **TINY, positions="alibi")

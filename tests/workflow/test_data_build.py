@@ -8,7 +8,7 @@ from pipeline.lm.chat import read_conversations
 from pipeline.workflow.data_build import (
     DataSettings,
     TEST_CONVERSATIONS, TEST_WORLDS, TRAIN_CONVERSATIONS, TextSettings, build_splits, dataset_sha256,
-    write_dataset,
+    untrained_words, untrained_words_line, validation_worlds, write_dataset,
 )
 from pipeline.core.world import World, load_worlds
 
@@ -79,3 +79,39 @@ def test_the_papers_test_file_can_be_the_test_split(paper_test_file):
 def test_asking_for_more_test_worlds_than_the_file_holds_names_the_limit(paper_test_file):
     with pytest.raises(ValueError, match="n_test=5000.*3000"):
         build_splits(_data(test_file=str(paper_test_file), n_test=5000))
+
+
+def test_untrained_words_names_the_step_numbers_only_larger_test_worlds_need(tmp_path, capsys):
+    """Numbered headers: test maps longer than any training map need step numbers training never wrote; the
+    summary counts them per word and the worlds needing one; plain headers need none."""
+    data = _data(train_size_x=[2, 2], train_size_y=[2, 2], test_size_x=[5, 6], test_size_y=[5, 6], n_train=30)
+    train, test = build_splits(data)
+    longest_train = max(len(w.optimal_moves()) for w in train)
+    numbered = write_dataset(tmp_path / "numbered", train, test, TextSettings.of("bwd", "no-all", "optimal"), (2, 2))
+    found = numbered["untrained_words"]
+    expected = {f" {k}" for w in test for k in range(longest_train + 1, len(w.optimal_moves()) + 1)}
+    assert expected and expected <= set(found["words"])
+    assert found["words"][f" {longest_train + 1}"] == sum(len(w.optimal_moves()) > longest_train for w in test)
+    assert 0 < found["n_worlds"] <= found["n_test"] == len(test) and found["n_words"] == len(found["words"])
+    line = untrained_words_line(found)
+    assert line.startswith(f"[data-build] {found['n_worlds']} of {len(test)} test worlds need words") and "' " in line
+    plain = write_dataset(tmp_path / "plain", train, test,
+                          TextSettings.of("bwd", "no-all", "optimal", step_headers="plain"), (2, 2))
+    assert not any(word.strip().isdigit() for word in plain["untrained_words"]["words"])
+
+
+def test_untrained_words_counts_each_world_once():
+    found = untrained_words({"a", "b"}, [frozenset({"a", "c", "d"}), frozenset({"b"}), frozenset({"c"})])
+    assert found == {"words": {"c": 2, "d": 1}, "n_words": 2, "n_worlds": 2, "n_test": 3}
+    assert untrained_words_line(untrained_words({"a"}, [frozenset({"a"})])) is None
+
+
+def test_validation_worlds_follow_the_test_sizes_and_are_disjoint_from_both_splits():
+    data = _data(n_train=200, n_test=20)
+    train, test = build_splits(data)
+    valid = validation_worlds(data, 30, train, test)
+    assert len(valid) == 30 and valid == validation_worlds(_data(n_train=200, n_test=20, workers=2), 30, train, test)
+    keys = {w.key() for w in valid}
+    assert len(keys) == 30 and not keys & {w.key() for w in (*train, *test)}
+    assert all(2 <= w.size_x <= 5 and 2 <= w.size_y <= 5 for w in valid)
+    assert any(w.size_x > 4 or w.size_y > 4 for w in valid)  # the test distribution, not the training one

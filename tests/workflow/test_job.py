@@ -199,3 +199,29 @@ def test_a_launched_finetune_trains_exactly_what_the_in_process_one_does(tmp_pat
             assert torch.equal(weights[0][key], weights[1][key]), key
         else:
             torch.testing.assert_close(weights[0][key].float(), weights[1][key].float(), rtol=1e-2, atol=1e-3)
+
+
+def test_plain_headers_nope_model_and_validation_split_run_end_to_end(tmp_path, capsys):
+    """The extrapolation switches through a whole job: the data are written with plain headers, the model is
+    built without RoPE, and eval.n_valid scores the validation worlds apart from the test worlds."""
+    cfg = _cfg(tmp_path, "model.step_headers=plain", "model.positions=nope", "eval.n_valid=3", "variant=no-all")
+    results = run_job(cfg)
+    assert results["valid_n_episodes"] == 3 and results["n_episodes"] == 3
+    (job,) = _job_runs(cfg)
+    ids = {step: job.data.tags[step_run_tag(step)] for step in ("data-build", "finetune", "eval")}
+    client = mlflow.MlflowClient(cfg.tracking.uri)
+    conversations = Path(mlflow.artifacts.download_artifacts(run_id=ids["data-build"], tracking_uri=cfg.tracking.uri,
+                                                             artifact_path="conversations/train.jsonl")).read_text()
+    assert "Step:" in conversations and "Step 1:" not in conversations
+    assert "untrained_words" in client.get_run(ids["data-build"]).data.metrics
+    model_dir = mlflow.artifacts.download_artifacts(run_id=ids["finetune"], artifact_path="model",
+                                                    tracking_uri=cfg.tracking.uri)
+    assert json.loads((Path(model_dir) / "config.json").read_text())["no_rope_layers"] == [0, 0]
+    valid = [json.loads(line) for line in open(mlflow.artifacts.download_artifacts(
+        run_id=ids["eval"], artifact_path="episodes_valid.jsonl", tracking_uri=cfg.tracking.uri))]
+    test = [json.loads(line) for line in open(mlflow.artifacts.download_artifacts(
+        run_id=ids["eval"], artifact_path=EPISODES_ARTIFACT, tracking_uri=cfg.tracking.uri))]
+    assert len(valid) == 3 and [r["world_index"] for r in valid] == [0, 1, 2]
+    assert [(r["size_x"], r["size_y"], r["optimal_length"]) for r in valid] != \
+        [(r["size_x"], r["size_y"], r["optimal_length"]) for r in test]
+    assert "| validation " in capsys.readouterr().out
