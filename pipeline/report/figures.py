@@ -64,8 +64,9 @@ def size_grid(frame: pd.DataFrame, values: pd.Series, sizes: range) -> np.ndarra
 def size_heatmaps(episodes: pd.DataFrame, out: Path) -> list[Path]:
     """One figure per (mode, direction, metric): a panel per variant, success (or outcome) rate by size.
 
-    Seeds are pooled. Each panel's train boundary (:func:`train_box`) is drawn as a red box; sizes no
-    test world has are grey. All panels share the 0-1 colour scale.
+    Seeds are pooled. Each panel's train boundary (:func:`train_box`) is drawn as a red box. Each size with
+    test worlds carries its number of episodes (``n``); a size no test world has is grey and marked ``-``,
+    so it cannot be read as a rate of 0. All panels share the 0-1 colour scale.
     """
     if episodes.empty:
         return []
@@ -94,6 +95,17 @@ def size_heatmaps(episodes: pd.DataFrame, out: Path) -> list[Path]:
                                       extent=(sizes.start - 0.5, sizes.stop - 0.5,
                                               sizes.start - 0.5, sizes.stop - 0.5))
                     ax.set_facecolor("0.85")
+                    counts = cell.groupby(["size_y", "size_x"]).size()
+                    small = len(sizes) > 12  # the paper's 19 x 19 sizes: counts would not fit
+                    for y in sizes:
+                        for x in sizes:
+                            n = int(counts.get((y, x), 0))
+                            if n == 0:
+                                ax.text(x, y, "-", ha="center", va="center", fontsize=8, color="0.3")
+                            elif not small:
+                                value = grid[y - sizes.start, x - sizes.start]
+                                ax.text(x, y, str(n), ha="center", va="center", fontsize=7,
+                                        color="black" if value > 0.6 else "white")
                     if box is not None:
                         ax.add_patch(Rectangle((sizes.start - 0.5, sizes.start - 0.5),
                                                box[0] - sizes.start + 1, box[1] - sizes.start + 1,
@@ -107,7 +119,8 @@ def size_heatmaps(episodes: pd.DataFrame, out: Path) -> list[Path]:
                 for ax in list(axes.flat)[len(variants):]:
                     ax.set_axis_off()
                 fig.colorbar(image, ax=axes, shrink=0.8, label=title)
-                fig.suptitle(f"{title} by world size: {mode}, {direction.upper()}")
+                fig.suptitle(f"{title} by world size: {mode}, {direction.upper()}\nnumber: test worlds of that "
+                             "size; -: none;\nred box: the training sizes", fontsize=9)
                 path = out / f"heatmap_{mode}_{direction}_{metric}.png"
                 fig.savefig(path, dpi=DPI)
                 paths.append(path)
@@ -217,7 +230,9 @@ def rapid_adaptation(curves: pd.DataFrame, losses: pd.DataFrame, out: Path,
                        label=f"{_label(('', *key), with_mode=False)} ({modes}, {run_id[:6]})")
     left.set(xlabel="training step", ylabel="success rate (checkpoint subset)", ylim=(-0.02, 1.02),
              title="Success rate during training")
-    right.set(xlabel="training step", ylabel="training loss", title="Training loss")
+    # The loss falls by orders of magnitude: on a linear scale everything after the first steps is flat.
+    right.set(xlabel="training step", ylabel="training loss (log scale)", title="Training loss",
+              yscale="log" if len(losses) and (losses["value"] > 0).all() else "linear")
     for ax, frame in ((left, curves), (right, losses)):
         if frame.empty:
             ax.text(0.5, 0.5, "no data logged", ha="center", va="center", transform=ax.transAxes)
@@ -310,8 +325,8 @@ def episode_gallery(cases: list[tuple], label: str, path: Path) -> Path | None:
             outcome = record.get("outcome") or ("success" if record.get("success") else "fail")
             draw_world(ax, world, list(record.get("moves") or []), bool(record.get("success")),
                        f"world {record['world_index']} ({world.size_x}x{world.size_y}): {outcome}")
-    fig.suptitle(f"{label}: walls dark, pits orange, start blue, goal star; optimal path dashed, the model's "
-                 "moves in colour (x: where a failure stopped)", fontsize=9)
+    fig.suptitle(f"{label}\nwalls dark, pits orange, start blue, goal star; optimal path dashed,\nthe model's "
+                 "moves in colour (x: where a failure stopped)", fontsize=8)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=DPI)
     return path
