@@ -43,6 +43,8 @@ def _paper_test() -> Path | None:
 
 
 PAPER_TEST = _paper_test()
+# Meta-Llama-3-8B's tokenizer, no weights (its README says where it comes from and under which licence).
+LLAMA3_TOKENIZER = ROOT / "tests" / "fixtures" / "llama3_tokenizer"
 
 # World generation dominates example time; no deadline so a slow CI box does not flake.
 settings.register_profile(
@@ -79,6 +81,28 @@ def paper_test_file() -> Path:
         pytest.skip("the paper's test file is not available: set COGMAP_PAPER_TEST to a copy, or fetch it "
                     "(python -m pipeline.workflow.paper_data test)")
     return PAPER_TEST
+
+
+@pytest.fixture(scope="session")
+def llama3_tokenizer_dir() -> Path:
+    """The folder of the real Llama-3 tokenizer. Without its files the tests that need it skip, naming them;
+    in CI (``CI`` set) they fail instead, so CI always runs them."""
+    missing = [name for name in ("tokenizer.json", "tokenizer_config.json") if not (LLAMA3_TOKENIZER / name).is_file()]
+    if missing:
+        reason = (f"the Llama-3 tokenizer fixture lacks {', '.join(missing)} in {LLAMA3_TOKENIZER.relative_to(ROOT)} "
+                  "(its README says how to rebuild it)")
+        if os.environ.get("CI"):
+            pytest.fail(reason)
+        pytest.skip(reason)
+    return LLAMA3_TOKENIZER
+
+
+@pytest.fixture(scope="session")
+def llama3_tokenizer(llama3_tokenizer_dir):
+    """Meta-Llama-3-8B's tokenizer as transformers loads it from its model folder (shared: do not modify)."""
+    from transformers import AutoTokenizer
+
+    return AutoTokenizer.from_pretrained(llama3_tokenizer_dir, local_files_only=True)
 
 
 @pytest.fixture(scope="session")

@@ -147,8 +147,12 @@ def tracked_files(root: Path) -> list[str]:
 
 
 # --------------------------------------------------------------------------------------- the repository
+# Third-party data, not text of ours: a BPE vocabulary holds pieces that read as paths.
+NOT_SCANNED = {"tests/fixtures/llama3_tokenizer/tokenizer.json"}
+
+
 def test_no_tracked_file_names_a_machine_path_or_leaves_the_repository():
-    findings = [finding for path in tracked_files(ROOT) for finding in scan_file(ROOT, path)]
+    findings = [finding for path in tracked_files(ROOT) if path not in NOT_SCANNED for finding in scan_file(ROOT, path)]
     if findings:
         pytest.fail("machine-specific or out-of-repository paths (use a repository-relative path, a config "
                     "value, an environment variable or pipeline.workflow.paper_data):\n" + "\n".join(map(str, findings)),

@@ -83,3 +83,12 @@ def test_llama3_8b_defaults_to_the_paper_template_and_keeps_the_instruct_headers
     instruct = compose_job(ROOT / "outputs", "model=llama3_8b", "model/chat_format=llama3_instruct").model.chat_format
     assert ChatFormat(**OmegaConf.to_container(paper)) == paper_format()
     assert instruct.turn_end == "<|eot_id|>" and instruct.first_human_prefix is None
+
+
+# ------------------------------------------------------------------ the real Llama-3 tokenizer (tests/fixtures)
+def test_the_fixture_is_meta_llama3s_tokenizer(llama3_tokenizer):
+    # The ids of Meta's own tokenizer test (meta-llama/llama3, llama/test_tokenizer.py).
+    assert llama3_tokenizer("This is a test sentence.").input_ids == [128000, 2028, 374, 264, 1296, 11914, 13]
+    assert len(llama3_tokenizer) == 128256
+    assert (llama3_tokenizer.bos_token, llama3_tokenizer.eos_token) == ("<|begin_of_text|>", "<|end_of_text|>")
+    assert llama3_tokenizer.pad_token is None  # as Meta ships it: the trainer must add one
