@@ -1,9 +1,13 @@
 """Turning ShareGPT conversations into token ids: the one place training and decoding agree on.
 
-A conversation is encoded turn by turn: ``[bos] + (prefix(role) + value + end(role))*``. Each piece is
-encoded on its own, so the ids of a prefix of the conversation are exactly a prefix of the ids of the whole:
-a decoder can append the next observation to a cached sequence without re-encoding the history.
-Loss targets are the gpt values and their ``turn_end`` token(s); everything else is context.
+A conversation renders as ``[bos] + (prefix(role) + value + end(role))*`` and is encoded in pieces: each run
+of context (the BOS, a human turn with its prefix and end, and the gpt prefix after it) as one text, then
+each gpt value and its ``turn_end`` on their own. A context run is encoded whole because a subword tokenizer
+merges across its joins: Llama-3's encodes ``[INST] You`` as ``[``, ``INST``, ``]``, `` You``, where the prefix
+encoded apart gives `` ``, ``You`` (the paper's code tokenizes the whole rendered string at once). The pieces
+end where a decoder's input does (after the gpt prefix; after a turn end), so the ids of a prefix of the
+conversation are exactly a prefix of the ids of the whole: a decoder appends the next observation to a cached
+sequence without re-encoding the history. Loss targets are the gpt values and their ``turn_end`` token(s).
 """
 
 from __future__ import annotations
@@ -62,48 +66,50 @@ def _encode(tokenizer: TextTokenizer, text: str) -> list[int]:
     return tokenizer.encode(text, add_special_tokens=False) if text else []
 
 
-def encode_turn(tokenizer: TextTokenizer, fmt: ChatFormat, role: str, value: str,
-                first: bool = False) -> tuple[list[int], list[int]]:
-    """Ids of one turn and its labels: targets only on a gpt turn's value and its whole turn end (as the
-    paper's FastChat fork trains: the ``<|end_of_text|><|begin_of_text|>`` after an answer is a target there
-    too). ``first``: the conversation's first turn."""
-    prefix = _encode(tokenizer, fmt.prefix(role, first))
-    body = _encode(tokenizer, value) + _encode(tokenizer, fmt.end(role))
-    labels = [IGNORE_INDEX] * len(prefix) + (body if role == "gpt" else [IGNORE_INDEX] * len(body))
-    return prefix + body, labels
+def _context(fmt: ChatFormat, turn: dict, first: bool) -> str:
+    """A non-gpt turn's text: its prefix, value and end."""
+    return fmt.prefix(turn["from"], first) + turn["value"] + fmt.end(turn["from"])
+
+
+def _pieces(fmt: ChatFormat, turns: Sequence[dict], generation_prompt: bool) -> list[tuple[str, bool]]:
+    """The conversation's text as it is encoded: (text, is a loss target) pieces, context runs whole."""
+    pieces, context = [], fmt.bos
+    for index, turn in enumerate(turns):
+        if turn["from"] != "gpt":
+            context += _context(fmt, turn, index == 0)
+            continue
+        pieces += [(context + fmt.gpt_prefix, False), (turn["value"], True), (fmt.turn_end, True)]
+        context = ""
+    return pieces + [(context + (fmt.gpt_prefix if generation_prompt else ""), False)]
 
 
 def encode_conversation(
     tokenizer: TextTokenizer, fmt: ChatFormat, turns: Sequence[dict]
 ) -> tuple[list[int], list[int]]:
-    """Token ids of a whole conversation and labels with loss on gpt turns only."""
-    ids = _encode(tokenizer, fmt.bos)
-    labels = [IGNORE_INDEX] * len(ids)
-    for index, turn in enumerate(turns):
-        turn_ids, turn_labels = encode_turn(tokenizer, fmt, turn["from"], turn["value"], first=index == 0)
-        ids += turn_ids
-        labels += turn_labels
+    """Token ids of a whole conversation and labels with loss on gpt turns only: targets on each gpt value
+    and its whole turn end (as the paper's FastChat fork trains: the ``<|end_of_text|><|begin_of_text|>`` after
+    an answer is a target there too)."""
+    ids, labels = [], []
+    for text, target in _pieces(fmt, turns, generation_prompt=False):
+        piece = _encode(tokenizer, text)
+        ids += piece
+        labels += piece if target else [IGNORE_INDEX] * len(piece)
     return ids, labels
 
 
 def render_conversation(fmt: ChatFormat, turns: Sequence[dict], generation_prompt: bool = False) -> str:
     """The text `encode_conversation` encodes (and, with ``generation_prompt``, the gpt prefix after it)."""
-    parts = [fmt.bos]
-    for index, turn in enumerate(turns):
-        parts += [fmt.prefix(turn["from"], index == 0), turn["value"], fmt.end(turn["from"])]
-    return "".join(parts) + (fmt.gpt_prefix if generation_prompt else "")
+    return "".join(text for text, _ in _pieces(fmt, turns, generation_prompt))
 
 
 def encode_prompt(tokenizer: TextTokenizer, fmt: ChatFormat, turns: Sequence[dict]) -> list[int]:
     """Ids of the turns so far followed by the gpt prefix: what a model continues from."""
-    ids, _ = encode_conversation(tokenizer, fmt, turns)
-    return ids + _encode(tokenizer, fmt.gpt_prefix)
+    return [i for text, _ in _pieces(fmt, turns, generation_prompt=True) for i in _encode(tokenizer, text)]
 
 
 def encode_followup(tokenizer: TextTokenizer, fmt: ChatFormat, human_value: str) -> list[int]:
     """Ids to append after a finished gpt turn (ending in ``turn_end``): the next human turn and gpt prefix."""
-    ids, _ = encode_turn(tokenizer, fmt, "human", human_value)
-    return ids + _encode(tokenizer, fmt.gpt_prefix)
+    return _encode(tokenizer, _context(fmt, {"from": "human", "value": human_value}, False) + fmt.gpt_prefix)
 
 
 def turn_end_ids(tokenizer: TextTokenizer, fmt: ChatFormat) -> list[int]:

@@ -18,6 +18,7 @@ from omegaconf import DictConfig, OmegaConf
 from pipeline.core.variants import PAPER_ROWS
 from pipeline.core.checks import SettingError
 from pipeline.core.world import WorldError
+from pipeline.lm.model_settings import ModelKind
 from pipeline.workflow.config import ConfigError, JobSettings, UndefinedCell, config_hash, register_configs, validate
 from pipeline.workflow.data_build import TEST_CONVERSATIONS, TRAIN_CONVERSATIONS, TextSettings, log_step_dataset, run_data_build
 from pipeline.workflow.evaluation import run_eval
@@ -33,6 +34,9 @@ log = logging.getLogger("pipeline.run")
 UI_ADDRESS = "http://127.0.0.1:5000"
 # Bumped when a step's code changes what it writes, so old runs are not reused for new semantics.
 STEP_VERSIONS = {"data-build": 2, "finetune": 2, "eval": 3}   # README, "Step versions", says what each bump changed
+# The same for a pretrained model's (kind=hf) finetune alone: its subword tokenizer gives other ids since each
+# human turn is encoded with its prefix as one text (issue 24); a scratch model's word-level ids did not change.
+HF_FINETUNE_VERSION = 2
 
 register_configs()
 # Our own bars (data-build, training, eval) say what is happening; per-file download bars only add noise.
@@ -72,8 +76,9 @@ def step_hashes(job: JobSettings, seed: int, texts: TextSettings) -> dict[str, s
     """The identity of each step: what decides its output, and its inputs' identities."""
     digests = [None if found is None else found.sha256 for found in (job.files["test"], job.files["train"])]
     data = config_hash("data-build", STEP_VERSIONS["data-build"], asdict(job.data), asdict(texts), *digests)
+    hf = [f"hf {HF_FINETUNE_VERSION}"] if job.model.kind is ModelKind.hf else []
     finetune = config_hash("finetune", STEP_VERSIONS["finetune"], hashed(job.model, job.model.to_dict()),
-                           job.train.to_dict(), seed, data)
+                           hashed(job.train, job.train.to_dict()), seed, data, *hf)
     evaluation = config_hash("eval", STEP_VERSIONS["eval"], asdict(job.eval), finetune, data)
     return {"data-build": data, "finetune": finetune, "eval": evaluation}
 

@@ -92,3 +92,60 @@ def test_the_fixture_is_meta_llama3s_tokenizer(llama3_tokenizer):
     assert len(llama3_tokenizer) == 128256
     assert (llama3_tokenizer.bos_token, llama3_tokenizer.eos_token) == ("<|begin_of_text|>", "<|end_of_text|>")
     assert llama3_tokenizer.pad_token is None  # as Meta ships it: the trainer must add one
+
+
+def paper_conversations(n_worlds: int = 3, prompts=("paper", "task")) -> list[list[dict]]:
+    """Every defined (variant, direction, mode, prompt) on a few worlds of 2..6 cells a side."""
+    from pipeline.core.generation import GeneratorConfig, generate_worlds
+    from pipeline.core.texts import conversation
+    from pipeline.core.variants import BY_NAME, DIRECTIONS, MODES, VARIANTS
+
+    worlds = generate_worlds(n_worlds, seed="llama3-template", cfg=GeneratorConfig(size_x=(2, 6), size_y=(2, 6)))
+    return [conversation(world, direction, variant, mode, prompt=prompt)
+            for world in worlds for variant in VARIANTS for direction in DIRECTIONS for mode in MODES
+            for prompt in prompts if mode == "reachable" or not BY_NAME[variant].reachable_only]
+
+
+def test_the_paper_template_gives_the_papers_ids_and_loss_mask_with_the_real_tokenizer(llama3_tokenizer):
+    from fastchat_reference import fastchat_ids_and_labels
+
+    fmt = paper_format()
+    conversations = paper_conversations()
+    assert len(conversations) == 3 * 2 * (2 * 2 * 14 + 2)  # 14 variants in both modes, DFS reachable only
+    for turns in conversations:
+        ids, labels = encode_conversation(llama3_tokenizer, fmt, turns)
+        assert (ids, labels) == fastchat_ids_and_labels(llama3_tokenizer, turns, max_length=8192)
+        # ... and they are the rendered string tokenized at once, as the paper's code does.
+        assert ids == llama3_tokenizer(render_conversation(fmt, turns), add_special_tokens=False).input_ids
+
+
+def test_the_first_human_turn_is_encoded_with_its_prefix(llama3_tokenizer):
+    # Encoded apart, "[INST] " ended in a lone space and the instruction began "You" (issue 24: every
+    # conversation of every variant differed from the paper's ids by that one split).
+    fmt = paper_format()
+    (turns,) = paper_conversations(1, prompts=("paper",))[:1]
+    ids, labels = encode_conversation(llama3_tokenizer, fmt, turns)
+    assert llama3_tokenizer.convert_ids_to_tokens(ids[:6]) == ["<|begin_of_text|>", "[", "INST", "]", "ĠYou", "Ġare"]
+    assert ids[:6] == [128000, 58, 65562, 60, 1472, 527]
+    apart = llama3_tokenizer.encode("[INST] ", add_special_tokens=False) + llama3_tokenizer.encode("You are", add_special_tokens=False)
+    assert llama3_tokenizer.convert_ids_to_tokens(apart) == ["[", "INST", "]", "Ġ", "You", "Ġare"]
+    assert set(labels[:6]) == {IGNORE_INDEX}
+
+
+def test_cached_decoding_appends_exactly_the_ids_training_sees_with_the_real_tokenizer(llama3_tokenizer):
+    # The decoder's sequence (prompt, answer, stop, rest of the turn end, next observation and gpt prefix,
+    # ...) must be the training conversation's ids, so a cached episode sees what training showed.
+    fmt = paper_format()
+    end = turn_end_ids(llama3_tokenizer, fmt)
+    stop = stop_ids(llama3_tokenizer, fmt)
+    reachable = [t for t in paper_conversations(2, prompts=("paper", "task")) if len(t) > 4]
+    assert reachable
+    for turns in reachable:
+        first = 3 if turns[1]["from"] == "gpt" else 1  # the paper's three prompt turns, or the task alone
+        sequence = encode_prompt(llama3_tokenizer, fmt, turns[:first])
+        for index in range(first, len(turns), 2):
+            sequence += llama3_tokenizer.encode(turns[index]["value"], add_special_tokens=False) + stop
+            if index + 1 < len(turns):
+                sequence += end[len(stop):] + encode_followup(llama3_tokenizer, fmt, turns[index + 1]["value"])
+        whole, _ = encode_conversation(llama3_tokenizer, fmt, turns)
+        assert sequence + end[len(stop):] == whole

@@ -3,7 +3,7 @@
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.lm.chat import WORD_LEVEL_FORMAT, encode_conversation
+from pipeline.lm.chat import WORD_LEVEL_FORMAT, encode_conversation, render_conversation
 from pipeline.core.generation import GeneratorConfig, generate_worlds
 from pipeline.core.texts import conversation
 from pipeline.lm.tokenizer import build_word_tokenizer, count_pieces, pieces
@@ -53,4 +53,11 @@ def test_labels_cover_gpt_turns_only():
     assert targets == TOKENIZER.encode("OK</s>", add_special_tokens=False) + answer
 
 
-
+def test_a_conversation_encodes_as_its_whole_rendered_text():
+    # Markers are whole tokens and pieces never span one, so encoding the context runs whole (as a subword
+    # tokenizer needs) gives the word-level ids that encoding each piece apart gave before.
+    for world in WORLDS[:5]:
+        for mode in ("optimal", "reachable"):
+            turns = conversation(world, "bwd", "marking-deadend", mode, prompt="paper")
+            ids, _ = encode_conversation(TOKENIZER, WORD_LEVEL_FORMAT, turns)
+            assert ids == TOKENIZER.encode(render_conversation(WORD_LEVEL_FORMAT, turns), add_special_tokens=False)
