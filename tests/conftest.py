@@ -106,6 +106,22 @@ def llama3_tokenizer(llama3_tokenizer_dir):
 
 
 @pytest.fixture(scope="session")
+def tiny_llama3_dir(llama3_tokenizer_dir, tmp_path_factory) -> Path:
+    """A saved, randomly initialised Llama of 2 layers of 32 over the real Llama-3 tokenizer (its 128,256
+    tokens, no pad token: a `model=hf` path shaped as Meta-Llama-3-8B's folder is, at toy size)."""
+    from transformers import AutoTokenizer
+
+    from pipeline.lm.models import build_scratch_model
+
+    target = tmp_path_factory.mktemp("tiny-llama3")
+    tokenizer = AutoTokenizer.from_pretrained(llama3_tokenizer_dir, local_files_only=True)
+    build_scratch_model(tokenizer, hidden_size=32, num_layers=2, num_heads=2, intermediate_size=64,
+                        max_length=8192).save_pretrained(target)
+    tokenizer.save_pretrained(target)
+    return target
+
+
+@pytest.fixture(scope="session")
 def paper_worlds(paper_test_file) -> list[World]:
     """The paper's released test set, loaded once per session."""
     return load_worlds(paper_test_file)

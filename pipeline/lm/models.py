@@ -8,6 +8,7 @@ naming the path and what was expected, instead of a deep library traceback.
 from __future__ import annotations
 
 import json
+import logging
 from dataclasses import asdict
 from pathlib import Path
 from typing import Iterable
@@ -29,26 +30,56 @@ from pipeline.lm.model_settings import ATTENTION_IMPLEMENTATIONS, DTYPES, POSITI
 from pipeline.lm.tokenizer import build_word_tokenizer
 
 CHAT_FORMAT_FILE = "chat_format.json"
+# The pad token the paper's training code adds to a tokenizer that has none (Meta-Llama-3-8B's has none).
+PAD_TOKEN = "<pad>"
+
+log = logging.getLogger(__name__)
 
 
 def make_tokenizer(settings: ModelSettings, texts: Iterable[str], frame: int) -> PreTrainedTokenizerBase:
     """The model's tokenizer: a word-level one over ``texts`` and the cells of ``frame`` (scratch), or the
-    pretrained model's own."""
+    pretrained model's own, given a pad token if it has none (`with_pad_token`)."""
     if settings.kind is ModelKind.scratch:
         return build_word_tokenizer(texts, frame=frame)
-    return load_tokenizer(settings.path, trust_remote_code=settings.trust_remote_code)
+    return with_pad_token(load_tokenizer(settings.path, trust_remote_code=settings.trust_remote_code))
+
+
+def with_pad_token(tokenizer: PreTrainedTokenizerBase) -> PreTrainedTokenizerBase:
+    """``tokenizer`` with a pad token: if it has none, `PAD_TOKEN` added as a new special token, as the paper's
+    training code does (the model's embeddings then grow by a row: `fit_embeddings`). Padding is never
+    attended by a real token nor trained on, so any id would do; a new one keeps the paper's vocabulary."""
+    if tokenizer.pad_token is None:
+        tokenizer.add_special_tokens({"pad_token": PAD_TOKEN})
+        log.info("the tokenizer has no pad token: added %s (id %d), as the paper's training code does",
+                 PAD_TOKEN, tokenizer.pad_token_id)
+    return tokenizer
+
+
+def fit_embeddings(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBase, *, seed: int = 0) -> PreTrainedModel:
+    """``model`` with an embedding row (and output row) for every token of ``tokenizer``: rows for tokens
+    the tokenizer added (its pad token) are drawn as transformers draws them (from the old rows' mean and
+    covariance), seeded by ``seed``; the global torch RNG is left as it was. Sets the model's pad id."""
+    rows = model.get_input_embeddings().num_embeddings
+    if len(tokenizer) > rows:
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            model.resize_token_embeddings(len(tokenizer))
+        log.info("embeddings grown from %d to %d rows for the tokens the tokenizer added", rows, len(tokenizer))
+    model.config.pad_token_id = tokenizer.pad_token_id
+    return model
 
 
 def make_model(settings: ModelSettings, tokenizer: PreTrainedTokenizerBase, *, seed: int = 0) -> PreTrainedModel:
     """THE place a model to train comes from: a new Llama sized by ``settings`` (scratch, seeded), or the
-    pretrained one at ``settings.path``."""
+    pretrained one at ``settings.path`` with rows for the tokens its tokenizer added (`fit_embeddings`)."""
     if settings.kind is ModelKind.scratch:
         return build_scratch_model(tokenizer, hidden_size=settings.hidden_size, num_layers=settings.num_layers,
                                    num_heads=settings.num_heads, intermediate_size=settings.intermediate_size,
                                    max_length=settings.max_length, attn_implementation=settings.attn_implementation,
                                    positions=settings.positions, rope_theta=settings.rope_theta, seed=seed)
-    return load_model(settings.path, dtype=settings.dtype, trust_remote_code=settings.trust_remote_code,
-                      attn_implementation=settings.attn_implementation)
+    model = load_model(settings.path, dtype=settings.dtype, trust_remote_code=settings.trust_remote_code,
+                       attn_implementation=settings.attn_implementation)
+    return fit_embeddings(model, tokenizer, seed=seed)
 
 
 _EXPECTED_MODEL = "a local transformers model directory with config.json and *.safetensors weights"

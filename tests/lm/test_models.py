@@ -2,9 +2,13 @@ import pytest
 import torch
 
 from pipeline.lm.chat import WORD_LEVEL_FORMAT, ChatFormat
+from pipeline.lm.model_settings import ModelSettings
 from pipeline.lm.models import (
+    PAD_TOKEN,
     ModelLoadError,
     build_scratch_model,
+    make_model,
+    make_tokenizer,
     load_chat_format,
     load_model,
     load_tokenizer,
@@ -129,3 +133,28 @@ def test_positions_switch_rope_per_layer_and_round_trip(tokenizer, tmp_path, pos
     torch.testing.assert_close(loaded(input_ids=ids).logits, model(input_ids=ids).logits)
     with pytest.raises(ValueError, match="positions='alibi' is not supported; allowed: rope, nope, alternate"):
         build_scratch_model(tokenizer, **TINY, positions="alibi")
+
+
+def test_a_tokenizer_without_a_pad_token_gets_the_papers_and_the_model_a_row_for_it(tiny_llama3_dir, tokenizer, tmp_path):
+    # Meta-Llama-3-8B's tokenizer has no pad token: the collator was built with None and training crashed.
+    # The paper's code adds "<pad>" as a new special token and grows the embeddings to the tokenizer's size.
+    settings = ModelSettings(kind="hf", path=str(tiny_llama3_dir))
+    assert load_tokenizer(tiny_llama3_dir).pad_token is None
+    tokenizer = make_tokenizer(settings, [], frame=0)
+    assert (tokenizer.pad_token, tokenizer.pad_token_id, len(tokenizer)) == (PAD_TOKEN, 128256, 128257)
+    state = torch.random.get_rng_state()
+    model = make_model(settings, tokenizer, seed=3)
+    assert torch.equal(torch.random.get_rng_state(), state)
+    assert model.get_input_embeddings().num_embeddings == model.get_output_embeddings().out_features == 128257
+    assert model.config.pad_token_id == 128256
+    # The new row is drawn from the seed: the same seed, the same row; the old rows are untouched.
+    again, other = make_model(settings, tokenizer, seed=3), make_model(settings, tokenizer, seed=4)
+    rows = [m.get_input_embeddings().weight for m in (model, again, other)]
+    assert torch.equal(rows[0], rows[1]) and not torch.equal(rows[0][-1], rows[2][-1])
+    assert torch.equal(rows[0][:-1], load_model(tiny_llama3_dir).get_input_embeddings().weight)
+    # A tokenizer that has a pad token keeps it, and its model keeps its size.
+    build_scratch_model(tokenizer, **TINY).save_pretrained(tmp_path)
+    tokenizer.save_pretrained(tmp_path)
+    padded = ModelSettings(kind="hf", path=str(tmp_path))
+    assert make_tokenizer(padded, [], frame=0).pad_token_id == tokenizer.pad_token_id
+    assert make_model(padded, make_tokenizer(padded, [], frame=0)).config.vocab_size == len(tokenizer)

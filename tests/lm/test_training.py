@@ -100,6 +100,12 @@ def test_too_long_conversations_are_dropped_and_counted(tokenizer, conversations
     assert max(data.lengths) <= limit
 
 
+@pytest.mark.parametrize("pad", [None, -1, "<pad>"])
+def test_a_collator_without_a_pad_id_is_refused_naming_the_value(pad):
+    with pytest.raises(ValueError, match=f"pad_token_id={pad!r}: expected a token id.*with_pad_token"):
+        RightPadCollator(pad)
+
+
 def test_length_grouped_batches_are_tight_and_shuffled():
     rng = random.Random(0)
     lengths = [rng.randint(300, 1500) for _ in range(2000)]  # the spread of real conversations

@@ -69,6 +69,11 @@ class RightPadCollator:
     attention_mask: bool = False
     pad_to_multiple_of: int = 1
 
+    def __post_init__(self) -> None:
+        if not isinstance(self.pad_token_id, int) or self.pad_token_id < 0:
+            raise ValueError(f"pad_token_id={self.pad_token_id!r}: expected a token id (an integer >= 0); a "
+                             "tokenizer without a pad token gets one from pipeline.lm.models.with_pad_token")
+
     def __call__(self, features: list[dict]) -> dict[str, torch.Tensor]:
         width = max(len(f["input_ids"]) for f in features)
         width = -(-width // self.pad_to_multiple_of) * self.pad_to_multiple_of
