@@ -91,6 +91,7 @@ def result_metrics(result: TrainResult) -> dict[str, float]:
         "tokens_trained": result.tokens_trained, "real_token_fraction": result.real_token_fraction,
         "tokens_per_second": result.tokens_per_second, "train_seconds": result.train_seconds,
         "global_step": result.global_step, "dropped_conversations": result.dropped,
+        "truncated_conversations": result.truncated,
     }
     return {key: float(value) for key, value in values.items() if value is not None}
 

@@ -7,14 +7,21 @@ That code renders the conversation to one string, tokenizes the string at once (
 each exchange (up to an ``<|end_of_text|><|begin_of_text|>``) is cut at its ``[/INST]\\n``; what comes before
 the cut is masked, the answer and the two tokens after it are targets; the first token and everything after
 the last exchange are masked. A sequence that was not cut short and whose count disagrees with its length is
-masked whole.
+masked whole. Beside it, the project's side of the comparison: its paper template and conversations of every
+variant to encode.
 """
 
 from __future__ import annotations
 
 from typing import Sequence
 
-from pipeline.lm.chat import IGNORE_INDEX
+from omegaconf import OmegaConf
+
+from conftest import ROOT
+from pipeline.core.generation import GeneratorConfig, generate_worlds
+from pipeline.core.texts import conversation
+from pipeline.core.variants import BY_NAME, DIRECTIONS, MODES, VARIANTS
+from pipeline.lm.chat import IGNORE_INDEX, ChatFormat
 
 HUMAN, GPT = "[INST]", "[/INST]\n"          # the template's two roles
 GPT_END = "<|end_of_text|><|begin_of_text|>"  # what closes an answer (a human turn has no closing text)
@@ -52,3 +59,17 @@ def fastchat_ids_and_labels(tokenizer, turns: Sequence[dict], max_length: int) -
     if position < max_length and position != len(ids):
         labels = [IGNORE_INDEX] * len(ids)  # "tokenization mismatch": the paper's code trains nothing on it
     return ids, labels
+
+
+# ------------------------------------------------------------------------- the project's side of the comparison
+def paper_format() -> ChatFormat:
+    """The project's paper template (``model/chat_format=paper``, the llama3_8b default)."""
+    return ChatFormat(**OmegaConf.to_container(OmegaConf.load(ROOT / "conf/model/chat_format/paper.yaml")))
+
+
+def paper_conversations(n_worlds: int = 3, prompts=("paper", "task"), sizes=(2, 6)) -> list[list[dict]]:
+    """Every defined (variant, direction, mode, prompt) on a few worlds of ``sizes`` cells a side."""
+    worlds = generate_worlds(n_worlds, seed="llama3-template", cfg=GeneratorConfig(size_x=sizes, size_y=sizes, frame=20))
+    return [conversation(world, direction, variant, mode, prompt=prompt)
+            for world in worlds for variant in VARIANTS for direction in DIRECTIONS for mode in MODES
+            for prompt in prompts if mode == "reachable" or not BY_NAME[variant].reachable_only]

@@ -1,6 +1,6 @@
 """The paper's chat template (model/chat_format=paper, the llama3_8b default): the exact rendered string, the
 token-level loss mask, and decoding's stop and close ids, with a tokenizer built here that knows the
-Llama-3 special tokens."""
+Llama-3 special tokens, and with the real Llama-3 tokenizer against the ids the paper's code produces."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ from tokenizers import Tokenizer, decoders, models, pre_tokenizers
 from transformers import PreTrainedTokenizerFast
 
 from conftest import ROOT
+from fastchat_reference import paper_conversations, paper_format
 from pipeline.lm.chat import (
     IGNORE_INDEX, ChatFormat, encode_conversation, encode_followup, encode_prompt, render_conversation, stop_ids,
     turn_end_ids,
@@ -18,10 +19,6 @@ from pipeline.lm.chat import (
 SPECIAL = ("<|begin_of_text|>", "<|end_of_text|>", "[INST]", "[/INST]")
 TURNS = [{"from": "human", "value": "Rules here."}, {"from": "gpt", "value": "OK"},
          {"from": "human", "value": "Grid is here."}, {"from": "gpt", "value": "Plan:\nup"}]
-
-
-def paper_format() -> ChatFormat:
-    return ChatFormat(**OmegaConf.to_container(OmegaConf.load(ROOT / "conf/model/chat_format/paper.yaml")))
 
 
 @pytest.fixture(scope="module")
@@ -92,18 +89,6 @@ def test_the_fixture_is_meta_llama3s_tokenizer(llama3_tokenizer):
     assert len(llama3_tokenizer) == 128256
     assert (llama3_tokenizer.bos_token, llama3_tokenizer.eos_token) == ("<|begin_of_text|>", "<|end_of_text|>")
     assert llama3_tokenizer.pad_token is None  # as Meta ships it: the trainer must add one
-
-
-def paper_conversations(n_worlds: int = 3, prompts=("paper", "task")) -> list[list[dict]]:
-    """Every defined (variant, direction, mode, prompt) on a few worlds of 2..6 cells a side."""
-    from pipeline.core.generation import GeneratorConfig, generate_worlds
-    from pipeline.core.texts import conversation
-    from pipeline.core.variants import BY_NAME, DIRECTIONS, MODES, VARIANTS
-
-    worlds = generate_worlds(n_worlds, seed="llama3-template", cfg=GeneratorConfig(size_x=(2, 6), size_y=(2, 6)))
-    return [conversation(world, direction, variant, mode, prompt=prompt)
-            for world in worlds for variant in VARIANTS for direction in DIRECTIONS for mode in MODES
-            for prompt in prompts if mode == "reachable" or not BY_NAME[variant].reachable_only]
 
 
 def test_the_paper_template_gives_the_papers_ids_and_loss_mask_with_the_real_tokenizer(llama3_tokenizer):

@@ -100,6 +100,39 @@ def test_too_long_conversations_are_dropped_and_counted(tokenizer, conversations
     assert max(data.lengths) <= limit
 
 
+def test_too_long_conversations_are_truncated_when_asked_and_counted(tokenizer, conversations, caplog):
+    full = tokenize_conversations(tokenizer, WORD_LEVEL_FORMAT, conversations, 10_000)
+    limit = sorted(full.lengths)[len(full) // 2]
+    with caplog.at_level("WARNING", logger="pipeline.lm.training.batches"):
+        data = tokenize_conversations(tokenizer, WORD_LEVEL_FORMAT, conversations, limit, "truncate")
+    over = sum(n > limit for n in full.lengths)
+    assert (data.truncated, data.dropped, len(data)) == (over, 0, len(conversations))
+    for whole, cut in zip(full, data):
+        assert cut["input_ids"] == whole["input_ids"][:limit] and cut["labels"] == whole["labels"][:limit]
+    assert f"training: {over} of {len(conversations)} conversations are longer than max_length={limit} tokens " \
+           f"(train.long_conversations=truncate): {over} truncated to their first {limit} tokens, 0 dropped" in caplog.text
+    # Cut before its first target (inside the prompt): nothing left to train on, dropped and counted.
+    prompt_only = tokenize_conversations(tokenizer, WORD_LEVEL_FORMAT, conversations, 5, "truncate")
+    assert (len(prompt_only), prompt_only.dropped, prompt_only.truncated) == (0, len(conversations), 0)
+    with pytest.raises(ValueError, match="long_conversations='cut'; allowed: drop, truncate"):
+        tokenize_conversations(tokenizer, WORD_LEVEL_FORMAT, conversations, limit, "cut")
+
+
+def test_the_paper_recipe_truncates_as_the_papers_code_with_the_real_tokenizer(llama3_tokenizer):
+    # Maps of 20 x 20 worlds run past the paper's context of 8,192 tokens: the paper's code cuts them there
+    # and trains on the targets left (issue 24: the project dropped them).
+    from fastchat_reference import fastchat_ids_and_labels, paper_conversations, paper_format
+
+    fmt = paper_format()
+    conversations = paper_conversations(2, prompts=("paper",), sizes=(18, 20))
+    data = tokenize_conversations(llama3_tokenizer, fmt, conversations, 8192, "truncate")
+    dropped = tokenize_conversations(llama3_tokenizer, fmt, conversations, 8192, "drop")
+    assert data.truncated == dropped.dropped > 0 and data.dropped == 0
+    assert [(e["input_ids"], e["labels"]) for e in data] == [
+        fastchat_ids_and_labels(llama3_tokenizer, turns, 8192) for turns in conversations]
+    assert max(data.lengths) == 8192
+
+
 @pytest.mark.parametrize("pad", [None, -1, "<pad>"])
 def test_a_collator_without_a_pad_id_is_refused_naming_the_value(pad):
     with pytest.raises(ValueError, match=f"pad_token_id={pad!r}: expected a token id.*with_pad_token"):

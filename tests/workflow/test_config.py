@@ -93,6 +93,7 @@ def test_marking_without_all_moves_is_refused_naming_the_values():
     ("model.prompt=short", "model.prompt='short' is not allowed; expected one of paper, task"),
     ("model.log_model=copy", "model.log_model='copy' is not allowed; expected one of transformers, reference"),
     ("eval.rules=strict", "eval.rules='strict' is not allowed; expected one of project, paper"),
+    ("train.long_conversations=cut", "train.long_conversations='cut' is not allowed; expected one of drop, truncate"),
 ])
 def test_bad_values_fail_before_any_work(override, message):
     cfg = _compose([override, "model.path=null"] if override == "model=hf" else [override])
@@ -159,6 +160,29 @@ def test_paper_scale_presets_compose():
     assert cfg.train.warmup_ratio == 0.03 and cfg.train.weight_decay == 0.0 and cfg.train.learning_rate == 2e-5
     assert cfg.eval.backend == "vllm"
     assert cfg.data.test_file == "paper"   # resolved to the fetched, checksummed file (pipeline.workflow.paper_data)
+    # The paper's code truncates a conversation longer than the context; the CPU default drops it.
+    assert cfg.train.long_conversations == "truncate" and _compose().train.long_conversations == "drop"
+
+
+def test_settings_added_since_keep_the_step_hashes_of_finished_runs():
+    # train.long_conversations (issue 24) counts in the finetune hash only when set, so a store's finished
+    # CPU-default and toy steps stay reusable. Change these only for a change meant to rerun finished steps
+    # (README, "Step versions").
+    from pipeline.workflow.data_build import TextSettings
+    from pipeline.workflow.job import step_hashes
+
+    def hashes(*overrides, toy):
+        cfg = compose_job(None, "tracking.root=x", *overrides, toy=toy)
+        job = validate(cfg)
+        texts = TextSettings.of(str(cfg.direction.value), job.variant, str(cfg.mode.value), seed=job.data.seed,
+                                prompt=job.model.prompt, step_headers=job.model.step_headers)
+        return step_hashes(job, cfg.seed, texts)
+
+    assert hashes(toy=False) == {"data-build": "59c8be5e80860953", "finetune": "fa5c96d2e82add7f",
+                                 "eval": "7d937e0842d68a78"}
+    assert hashes(toy=True) == {"data-build": "4f57aa1580cc581b", "finetune": "190e005d3d206b4f",
+                                "eval": "948ab51e720a8f33"}
+    assert hashes("train.long_conversations=truncate", toy=True)["finetune"] != "190e005d3d206b4f"
 
 
 @pytest.mark.parametrize("launcher", ["local2", "slurm", "local_submitit"])

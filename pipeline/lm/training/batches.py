@@ -20,16 +20,19 @@ import torch
 from transformers import PreTrainedTokenizerBase
 
 from pipeline.lm.chat import IGNORE_INDEX, ChatFormat, encode_conversation
+from pipeline.lm.training.settings import LONG_CONVERSATIONS
 
 log = logging.getLogger(__name__)
 
 
 class ConversationDataset(torch.utils.data.Dataset):
-    """Tokenized conversations (``input_ids``, ``labels``); ``dropped`` counts those over ``max_length``."""
+    """Tokenized conversations (``input_ids``, ``labels``); of those over ``max_length``, ``dropped`` counts
+    the ones left out and ``truncated`` the ones cut to it."""
 
-    def __init__(self, examples: list[dict[str, list[int]]], dropped: int = 0):
+    def __init__(self, examples: list[dict[str, list[int]]], dropped: int = 0, truncated: int = 0):
         self.examples = examples
         self.dropped = dropped
+        self.truncated = truncated
 
     def __len__(self) -> int:
         return len(self.examples)
@@ -43,21 +46,31 @@ class ConversationDataset(torch.utils.data.Dataset):
 
 
 def tokenize_conversations(
-    tokenizer: PreTrainedTokenizerBase, fmt: ChatFormat, conversations: Sequence[Sequence[dict]], max_length: int
+    tokenizer: PreTrainedTokenizerBase, fmt: ChatFormat, conversations: Sequence[Sequence[dict]], max_length: int,
+    long_conversations: str = "drop", part: str = "training",
 ) -> ConversationDataset:
-    """Encode conversations with loss on gpt turns only. One longer than ``max_length`` is dropped and
-    counted (truncating it would train on a cut-off answer)."""
-    examples, dropped = [], 0
+    """Encode conversations with loss on gpt turns only. One longer than ``max_length`` tokens is dropped
+    (``long_conversations="drop"``) or cut to its first ``max_length`` tokens and trained on the targets left
+    (``"truncate"``, as the paper's code does); one cut before its first target is dropped. Which happened,
+    and to how many, is logged as one line naming the ``part``."""
+    if long_conversations not in LONG_CONVERSATIONS:
+        raise ValueError(f"long_conversations={long_conversations!r}; allowed: {', '.join(LONG_CONVERSATIONS)}")
+    examples, dropped, truncated = [], 0, 0
     for turns in conversations:
         input_ids, labels = encode_conversation(tokenizer, fmt, turns)
         if len(input_ids) > max_length:
-            dropped += 1
-            continue
+            input_ids, labels = input_ids[:max_length], labels[:max_length]
+            if long_conversations == "drop" or all(label == IGNORE_INDEX for label in labels):
+                dropped += 1
+                continue
+            truncated += 1
         examples.append({"input_ids": input_ids, "labels": labels})
-    if dropped:
-        log.warning("dropped %d of %d conversations longer than max_length=%d tokens",
-                    dropped, len(conversations), max_length)
-    return ConversationDataset(examples, dropped)
+    if dropped or truncated:
+        what = (f"{truncated} truncated to their first {max_length} tokens, {dropped} dropped (no target left)"
+                if long_conversations == "truncate" else "dropped")
+        log.warning("%s: %d of %d conversations are longer than max_length=%d tokens (train.long_conversations=%s): "
+                    "%s", part, dropped + truncated, len(conversations), max_length, long_conversations, what)
+    return ConversationDataset(examples, dropped, truncated)
 
 
 @dataclass

@@ -22,6 +22,7 @@ class TrainResult:
     global_step: int
     model_dir: str
     checkpoint_steps: list[int] = field(default_factory=list)
-    dropped: int = 0                  # conversations over max_length, not trained on
+    dropped: int = 0                  # conversations over max_length not trained on (dropped, or no target left)
+    truncated: int = 0                # conversations over max_length trained on their first max_length tokens
     resumed_from: str | None = None
     parameters: int = 0               # the model's parameters (a tied embedding counted once)

@@ -14,6 +14,9 @@ from pipeline.core.checks import SettingError, require
 
 REPORT_TARGETS = ("mlflow",)
 SCHEDULERS = ("cosine", "linear", "constant", "constant_with_warmup", "cosine_with_restarts", "polynomial")
+# What becomes of a conversation longer than the context (model.max_length): left out, or cut to the context and
+# trained on the targets left (the paper's code: its tokenizer truncates).
+LONG_CONVERSATIONS = ("drop", "truncate")
 
 
 class CompileMode(str, Enum):
@@ -37,7 +40,9 @@ class TrainSettings:
     `CompileMode`; on a CPU, compiling needs a C++ compiler and the Python headers.
     ``accelerate_config``: train under ``accelerate launch --config_file <it>`` (distributed, e.g. FSDP) in a
     subprocess. ``log_checkpoints``: the finetune step also logs every checkpoint's weights (the eval
-    step's adaptation curve evaluates them).
+    step's adaptation curve evaluates them). ``long_conversations`` (`LONG_CONVERSATIONS`): a conversation
+    longer than the context is dropped (the default: a model trained from scratch learns nothing from an
+    answer cut off mid-map) or truncated to it, as the paper's code does (``train=paper``).
     """
 
     max_steps: Optional[int] = None
@@ -64,6 +69,7 @@ class TrainSettings:
     eval_fraction: float = 0.0
     accelerate_config: Optional[str] = None
     log_checkpoints: bool = False
+    long_conversations: str = field(default="drop", metadata={"hash_if_set": True})
 
     def __post_init__(self) -> None:
         self.report_to = [self.report_to] if isinstance(self.report_to, str) else list(self.report_to)
@@ -91,6 +97,8 @@ class TrainSettings:
         require(self.torch_threads is None or self.torch_threads > 0, "torch_threads", self.torch_threads,
                 "a positive integer, or null to leave torch's setting")
         require(0 <= self.eval_fraction < 1, "eval_fraction", self.eval_fraction, "a fraction in [0, 1)")
+        require(self.long_conversations in LONG_CONVERSATIONS, "long_conversations", self.long_conversations,
+                f"one of {', '.join(LONG_CONVERSATIONS)}")
 
     @classmethod
     def from_dict(cls, values: dict) -> "TrainSettings":

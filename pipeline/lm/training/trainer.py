@@ -177,7 +177,7 @@ def finetune(
     ``output_dir`` if there is one, and save the final model to ``output_dir/model``.
 
     ``seed`` seeds the Trainer and the held-out split; a conversation longer than ``max_length`` tokens is
-    dropped and counted. With ``"mlflow"`` in ``settings.report_to``, transformers' MLflowCallback logs the
+    dropped or truncated (``settings.long_conversations``) and counted. With ``"mlflow"`` in ``settings.report_to``, transformers' MLflowCallback logs the
     Trainer's arguments as params and ``loss``, ``learning_rate``, ``grad_norm`` ... by step into the active
     run (or the run ``MLFLOW_RUN_ID`` names).
     """
@@ -197,8 +197,8 @@ def _finetune(model, tokenizer, fmt, conversations, settings, output_dir, seed, 
     checkpoints.mkdir(parents=True, exist_ok=True)
 
     train_part, eval_part = split_eval(conversations, settings.eval_fraction, seed)
-    train_data = tokenize_conversations(tokenizer, fmt, train_part, max_length)
-    eval_data = tokenize_conversations(tokenizer, fmt, eval_part, max_length)
+    train_data = tokenize_conversations(tokenizer, fmt, train_part, max_length, settings.long_conversations)
+    eval_data = tokenize_conversations(tokenizer, fmt, eval_part, max_length, settings.long_conversations, "held-out")
     if len(train_data) == 0:
         raise ValueError(f"no training conversation fits max_length={max_length} "
                          f"({train_data.dropped} dropped)")
@@ -250,6 +250,7 @@ def _finetune(model, tokenizer, fmt, conversations, settings, output_dir, seed, 
         model_dir=str(model_dir),
         checkpoint_steps=checkpoint_steps(output_dir),
         dropped=train_data.dropped + eval_data.dropped,
+        truncated=train_data.truncated + eval_data.truncated,
         resumed_from=resume,
         parameters=model.num_parameters(),
     )
