@@ -5,6 +5,11 @@
 Checks, in order (each a subprocess with its own time limit, all inside ``--budget`` seconds):
 
 - ``env``: the GPU, the library versions, bf16 support.
+- ``job-llama3``: the paper-scale path (``model=llama3_8b train=paper``) at a size that runs in a minute, first
+  because it has never run on a GPU: a local ~100M-parameter Llama over Meta-Llama-3-8B's real tokenizer
+  (``tests/fixtures/llama3_tokenizer``: 128,256 tokens, no pad token), the paper's template
+  (``model/chat_format=paper``) and recipe (``train=paper``: bf16, tf32, gradient checkpointing, no packing,
+  truncation at the context, FSDP through ``accelerate launch`` on the GPUs present), then decoded.
 - ``job-default``: `python -m pipeline.run` as it is (the CPU default job), on the GPU: bf16 training,
   batched KV-cache decoding.
 - ``job-hf-bf16``: a pretrained-model job (``model=hf``) on a local ~30M-parameter Llama with its own
@@ -39,8 +44,9 @@ from pathlib import Path
 from pipeline.lm.chat import WORD_LEVEL_FORMAT
 
 ROOT = Path(__file__).resolve().parents[1]
-CHECKS = ("env", "job-default", "job-hf-bf16", "job-fsdp", "fsdp-resume", "vllm", "tests", "bench-train",
-          "bench-decode")
+CHECKS = ("env", "job-llama3", "job-default", "job-hf-bf16", "job-fsdp", "fsdp-resume", "vllm", "tests",
+          "bench-train", "bench-decode")
+LLAMA3_TOKENIZER = ROOT / "tests" / "fixtures" / "llama3_tokenizer"
 # The word-level chat format for the local model's own tokenizer, as Hydra overrides.
 WORD_CHAT = [f"model.chat_format.{key}='{value}'" for key, value in asdict(WORD_LEVEL_FORMAT).items() if value is not None]
 ENV_SCRIPT = """
@@ -52,19 +58,26 @@ print("gpus:", [torch.cuda.get_device_name(i) for i in range(torch.cuda.device_c
 """
 
 
-def make_local_model(target: Path, hidden: int = 512, layers: int = 8, heads: int = 8) -> Path:
-    """A saved Llama (safetensors, word-level tokenizer) standing in for a downloaded base model."""
+def make_local_model(target: Path, hidden: int = 512, layers: int = 8, heads: int = 8,
+                     tokenizer_dir: Path | None = None) -> Path:
+    """A saved Llama (safetensors, with a word-level tokenizer or the one in ``tokenizer_dir``) standing in
+    for a downloaded base model."""
+    from transformers import AutoTokenizer
+
     from pipeline.core.generation import GeneratorConfig, generate_worlds
     from pipeline.lm.models import build_scratch_model
     from pipeline.core.texts import MAP_VARIANTS, conversation
     from pipeline.lm.tokenizer import build_word_tokenizer
 
-    worlds = generate_worlds(64, seed="gpu-paths", cfg=GeneratorConfig(size_x=(2, 6), size_y=(2, 6)))
-    texts = [turn["value"] for world in worlds for direction in ("fwd", "bwd") for variant in MAP_VARIANTS
-             for mode in ("optimal", "reachable") for turn in conversation(world, direction, variant, mode)]
-    tokenizer = build_word_tokenizer(texts)
+    if tokenizer_dir is not None:
+        tokenizer = AutoTokenizer.from_pretrained(tokenizer_dir, local_files_only=True)
+    else:
+        worlds = generate_worlds(64, seed="gpu-paths", cfg=GeneratorConfig(size_x=(2, 6), size_y=(2, 6)))
+        texts = [turn["value"] for world in worlds for direction in ("fwd", "bwd") for variant in MAP_VARIANTS
+                 for mode in ("optimal", "reachable") for turn in conversation(world, direction, variant, mode)]
+        tokenizer = build_word_tokenizer(texts)
     model = build_scratch_model(tokenizer, hidden_size=hidden, num_layers=layers, num_heads=heads,
-                                intermediate_size=4 * hidden, max_length=2048)
+                                intermediate_size=4 * hidden, max_length=8192 if tokenizer_dir else 2048)
     model.save_pretrained(target)
     tokenizer.save_pretrained(target)
     return target
@@ -188,16 +201,23 @@ def main() -> None:
               "train.torch_compile=none",  # as first measured; compiled layers under FSDP2 have not run yet
               *WORD_CHAT, *store]  # --toy's overrides come last
 
+    fsdp = f"train.accelerate_config={fsdp_config(args.work / f'fsdp{gpus}.yaml', max(gpus, 1))}"
     if "env" in wanted:
         runner.run("env", ["nvidia-smi"], 30)
         runner.run("env-python", [python, "-c", ENV_SCRIPT], 60)
+    if "job-llama3" in wanted:
+        llama3 = args.work / "local-llama3"
+        if not llama3.is_dir():
+            make_local_model(llama3, *((64, 2, 2) if args.toy else ()), tokenizer_dir=LLAMA3_TOKENIZER)
+        runner.run("job-llama3", [python, "-m", "pipeline.run", "model=hf", f"model.path={llama3}", "model.dtype=bfloat16",
+                                  "model/chat_format=paper", "train=paper", fsdp, f"train.max_steps={args.hf_steps}",
+                                  "train.save_steps=1000", "eval.n_worlds=64", "eval.max_new_tokens=512", *store], 300)
     if "job-default" in wanted:
         runner.run("job-default", [python, "-m", "pipeline.run", *store], 300)
     if {"job-hf-bf16", "job-fsdp", "fsdp-resume", "vllm"} & set(wanted) and not (args.work / "local-llama").is_dir():
         make_local_model(args.work / "local-llama", *((64, 2, 2) if args.toy else ()))
     if "job-hf-bf16" in wanted:
         runner.run("job-hf-bf16", [python, "-m", "pipeline.run", *hf_job, "model.dtype=bfloat16"], 240)
-    fsdp = f"train.accelerate_config={fsdp_config(args.work / f'fsdp{gpus}.yaml', max(gpus, 1))}"
     if "job-fsdp" in wanted:
         runner.run("job-fsdp", [python, "-m", "pipeline.run", *hf_job, fsdp], 240)
     if "fsdp-resume" in wanted:

@@ -1,6 +1,7 @@
 """The main path, end to end at toy scale: a job's three steps, their reuse, and a real Hydra multirun."""
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -225,3 +226,40 @@ def test_plain_headers_nope_model_and_validation_split_run_end_to_end(tmp_path, 
     assert [(r["size_x"], r["size_y"], r["optimal_length"]) for r in valid] != \
         [(r["size_x"], r["size_y"], r["optimal_length"]) for r in test]
     assert "| validation " in capsys.readouterr().out
+
+
+# The paper template with Meta-Llama-3-8B's real tokenizer on a tiny random Llama: the code path of
+# model=llama3_8b train=paper at toy size. A context of 448 tokens cuts the longest toy maps (up to ~500).
+LLAMA3_JOB = ["data=toy", "train=toy", "eval=toy", "model=hf", "model/chat_format=paper", "model.max_length=448",
+              "train.long_conversations=truncate", "train.max_steps=2", "train.per_device_batch_size=2",
+              "eval.n_worlds=2", "eval.max_new_tokens=32"]
+
+
+@pytest.mark.slow
+def test_a_llama_with_the_real_llama3_tokenizer_trains_and_decodes_the_paper_template(tmp_path, tiny_llama3_dir,
+                                                                                     caplog):
+    from pipeline.lm.models import PAD_TOKEN, load_chat_format, load_model, load_tokenizer
+
+    cfg = compose_job(tmp_path, f"model.path={tiny_llama3_dir}", *LLAMA3_JOB, toy=False)
+    with caplog.at_level("INFO", logger="pipeline.lm"):
+        results = run_job(cfg)
+    assert results["n_episodes"] == 2
+    (job,) = _job_runs(cfg)
+    finetune = mlflow.MlflowClient(cfg.tracking.uri).get_run(job.data.tags[step_run_tag("finetune")])
+    # 1. The tokenizer had no pad token: "<pad>" was added and the model grew a row for it.
+    assert finetune.data.params["model.vocab_size"] == "128257"
+    assert "the tokenizer has no pad token: added <pad> (id 128256)" in caplog.text
+    model_dir = Path(mlflow.artifacts.download_artifacts(run_id=finetune.info.run_id, artifact_path="model",
+                                                         tracking_uri=cfg.tracking.uri))
+    tokenizer = load_tokenizer(model_dir)
+    assert (tokenizer.pad_token, tokenizer.pad_token_id) == (PAD_TOKEN, 128256)
+    assert load_model(model_dir).get_input_embeddings().num_embeddings == 128257
+    assert load_chat_format(model_dir).first_human_prefix == "[INST] "
+    # 3. The longest conversations were cut to the context and trained on, as the paper's code does.
+    metrics = finetune.data.metrics
+    assert metrics["truncated_conversations"] > 0 and metrics["dropped_conversations"] == 0
+    said = re.findall(r"(training|held-out): \d+ of \d+ conversations are longer than max_length=448 tokens "
+                      r"\(train.long_conversations=truncate\): (\d+) truncated to their first 448 tokens", caplog.text)
+    assert [part for part, _ in said] == ["training", "held-out"][:len(said)]
+    assert sum(int(n) for _, n in said) == metrics["truncated_conversations"]
+    assert finetune.data.params["train.long_conversations"] == "truncate"
