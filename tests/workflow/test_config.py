@@ -135,7 +135,21 @@ def test_sweep_files_compose_and_define_the_whole_grid(sweep):
 
 
 def test_every_sweep_file_is_tested():
-    assert sorted(p.stem for p in SWEEPS.glob("*.yaml")) == ["cpu_study", "paper", "smoke"]
+    assert sorted(p.stem for p in SWEEPS.glob("*.yaml")) == ["cpu_study", "extrapolation", "paper", "smoke"]
+
+
+def test_the_extrapolation_study_crosses_each_lever_with_two_seeds_on_the_default_job():
+    cfg = _compose(name="extrapolation", sweeps=True, hydra_node=True)
+    params = cfg.hydra.sweeper.params
+    assert cfg.hydra.launcher.n_jobs == 2 and cfg.threads == 1
+    assert (params["model.step_headers"], params["model.positions"], params.seed) == (
+        "numbered,plain", "rope,nope,alternate", "0,1")
+    for headers in ("numbered", "plain"):
+        for positions in ("rope", "nope", "alternate"):
+            job = validate(_compose([f"model.step_headers={headers}", f"model.positions={positions}"],
+                                    name="extrapolation", sweeps=True))
+            assert (job.variant, job.model.step_headers, job.model.positions) == ("marking-deadend", headers, positions)
+            assert job.eval.n_valid == 200 and job.train.max_steps == 5000
 
 
 def test_cpu_study_is_the_optimal_half_of_table_1_with_two_seeds_where_asked():
