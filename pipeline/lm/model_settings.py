@@ -56,8 +56,8 @@ class ModelSettings:
     prompt: str = "task"
     # How the answers' step headers are written (pipeline.core.texts.STEP_HEADERS): the paper's `Step k:`, or
     # `Step:` (plain: no number word that larger test worlds would need and training never shows).
-    step_headers: str = "numbered"
-    positions: str = "rope"   # POSITIONS; scratch models only
+    step_headers: str = field(default="numbered", metadata={"hash_if_set": True})
+    positions: str = field(default="rope", metadata={"hash_if_set": True})   # POSITIONS; scratch models only
     # RoPE's base (scratch models): 10000 is Llama's. A small base turns even the slowest rotary pair through
     # whole periods within the training lengths, so a longer test sequence meets no angle training never saw.
     rope_theta: float = field(default=10000.0, metadata={"hash_if_set": True})

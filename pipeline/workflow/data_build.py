@@ -91,7 +91,8 @@ class TextSettings:
     mode: str
     seed: int = 0
     prompt: str = "paper"   # texts.PROMPTS: the paper's three prompt turns, or the task turn alone
-    step_headers: str = "numbered"   # texts.STEP_HEADERS: `Step k:` (the paper's) or `Step:`
+    # texts.STEP_HEADERS: `Step k:` (the paper's) or `Step:`; in the data-build hash only when set.
+    step_headers: str = field(default="numbered", metadata={"hash_if_set": True})
 
     @classmethod
     def of(cls, direction: str, variant: str, mode: str, seed: int = 0, prompt: str = "paper",

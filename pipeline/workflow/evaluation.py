@@ -9,7 +9,7 @@ alone (the report recomputes its splits from the same records).
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Optional
 
@@ -52,7 +52,7 @@ class EvalSettings:
     curve_worlds: int = 50
     # Also score this many validation worlds (`data_build.validation_worlds`: the test distribution, disjoint
     # from train and test), logged as valid_* metrics and episodes_valid.jsonl: choose recipes on these.
-    n_valid: int = 0
+    n_valid: int = field(default=0, metadata={"hash_if_set": True})
 
     def __post_init__(self) -> None:
         require(self.backend in BACKENDS, "backend", self.backend, f"one of {', '.join(BACKENDS)}")

@@ -179,9 +179,11 @@ def test_paper_scale_presets_compose():
 
 
 def test_settings_added_since_keep_the_step_hashes_of_finished_runs():
-    # train.long_conversations (issue 24) counts in the finetune hash only when set, so a store's finished
-    # CPU-default and toy steps stay reusable. Change these only for a change meant to rerun finished steps
-    # (README, "Step versions").
+    # Settings added since (train.long_conversations, model.step_headers/positions/rope_theta, the texts'
+    # step_headers, eval.n_valid) count in a hash only when set, so a store's finished CPU-default and toy steps
+    # stay reusable: these are the hashes of the code before them (commit d5259f8). The CPU default's eval
+    # scores validation worlds now (eval.n_valid=200), a new output: its eval hash is new. Change these only for
+    # a change meant to rerun finished steps (README, "Step versions").
     from pipeline.workflow.data_build import TextSettings
     from pipeline.workflow.job import step_hashes
 
@@ -192,11 +194,15 @@ def test_settings_added_since_keep_the_step_hashes_of_finished_runs():
                                 prompt=job.model.prompt, step_headers=job.model.step_headers)
         return step_hashes(job, cfg.seed, texts)
 
-    assert hashes(toy=False) == {"data-build": "59c8be5e80860953", "finetune": "fa5c96d2e82add7f",
-                                 "eval": "7d937e0842d68a78"}
-    assert hashes(toy=True) == {"data-build": "4f57aa1580cc581b", "finetune": "190e005d3d206b4f",
-                                "eval": "948ab51e720a8f33"}
-    assert hashes("train.long_conversations=truncate", toy=True)["finetune"] != "190e005d3d206b4f"
+    assert hashes("eval.n_valid=0", toy=False) == {"data-build": "9084abe767f5f3cf", "finetune": "9f74feb50b9e71d8",
+                                                  "eval": "7a5f1b9983e9f635"}
+    assert hashes(toy=False)["eval"] != "7a5f1b9983e9f635"
+    assert hashes(toy=True) == {"data-build": "128801358476e7a8", "finetune": "2404019bf8a1b813",
+                                "eval": "4141ac65b7504e8f"}
+    for override in ("model.step_headers=plain", "model.positions=nope", "model.rope_theta=100"):
+        assert hashes(override, toy=True)["finetune"] != "2404019bf8a1b813", override
+    assert hashes("model.step_headers=plain", toy=True)["data-build"] != "128801358476e7a8"
+    assert hashes("train.long_conversations=truncate", toy=True)["finetune"] != "2404019bf8a1b813"
 
 
 @pytest.mark.parametrize("launcher", ["local2", "slurm", "local_submitit"])
