@@ -199,7 +199,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default=None, help="output folder (default: report/ under tracking.root)")
     parser.add_argument("--no-log-run", action="store_true",
                         help="write the files only, without a report run in MLflow")
-    args = parser.parse_args(argv)
+    args = parser.parse_intermixed_args(argv)  # tracking.root=DIR may follow the options
     tracking_uri, experiment = store_of(parser, args)
     root = next((item.partition("=")[2] for item in args.store if item.startswith("tracking.root=")), "outputs")
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")

@@ -146,7 +146,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--failed", action="store_true", help="only episodes that failed")
     parser.add_argument("--limit", type=int, default=3, help="how many episodes without --world (default 3)")
     add_store_arguments(parser)
-    args = parser.parse_args(argv)
+    args = parser.parse_intermixed_args(argv)  # tracking.root=DIR may follow the options
     tracking_uri, _ = store_of(parser, args)
     try:
         print(inspect_run(tracking_uri, args.run_id, args.world, args.failed, args.limit), end="")

@@ -53,19 +53,44 @@ def _flat(config: dict, prefix: str = "") -> dict[str, object]:
     return flat
 
 
+def _schema_defaults() -> dict[str, object]:
+    """The job config's defaults, flattened: a key a job's config predates had its default."""
+    from omegaconf import OmegaConf
+
+    from pipeline.workflow.config import RunConfig
+
+    return _flat(OmegaConf.to_container(OmegaConf.structured(RunConfig), enum_to_str=True))
+
+
+def _latest_per_recipe(configs: list[dict]) -> list[int]:
+    """Indices of the latest run of each distinct config (a rerun that only re-evaluated supersedes its first)."""
+    latest: dict[str, int] = {}
+    for i, config in enumerate(configs):
+        latest[json.dumps({k: v for k, v in config.items() if not k.startswith(_IGNORED)}, sort_keys=True,
+                          default=str)] = i
+    return sorted(latest.values())
+
+
 def load_rows(tracking_uri: str, experiment: str) -> list[Row]:
-    """Every FINISHED job of the store, oldest first, with the config values in which the jobs differ."""
+    """The latest FINISHED job of each distinct config in the store, oldest first, with the config values in
+    which the jobs differ (a key a job's config predates counts as its default)."""
     client, found = open_experiment(tracking_uri, experiment)
     runs = finished_job_runs(client, found.experiment_id)
-    configs, episodes = [], []
+    defaults = _schema_defaults()
     with tempfile.TemporaryDirectory() as scratch:
+        configs = []
         for run in runs:
             folder = Path(scratch) / run.info.run_id
             folder.mkdir()
-            configs.append(_flat(json.loads(Path(client.download_artifacts(run.info.run_id, "config.json",
-                                                                           str(folder))).read_text())))
+            config = json.loads(Path(client.download_artifacts(run.info.run_id, "config.json", str(folder))).read_text())
+            configs.append({**defaults, **_flat(config)})
+        kept = _latest_per_recipe(configs)
+        runs, configs = [runs[i] for i in kept], [configs[i] for i in kept]
+        episodes = []
+        for run in runs:
             eval_id = run.data.tags.get(step_run_tag("eval"))
             names = {artifact.path for artifact in client.list_artifacts(eval_id)} if eval_id else set()
+            folder = Path(scratch) / run.info.run_id
             episodes.append({split: _records(client, eval_id, name, folder) if name in names else []
                              for split, name in zip(SPLITS, (VALID_EPISODES_ARTIFACT, EPISODES_ARTIFACT))})
     keys = sorted({key for config in configs for key in config if not key.startswith(_IGNORED)})
@@ -123,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
     add_store_arguments(parser)
     parser.add_argument("--reference", type=int, default=0, help="the row McNemar's tests compare against")
     parser.add_argument("--out", help="also write the table to this Markdown file")
-    args = parser.parse_args(argv)
+    args = parser.parse_intermixed_args(argv)  # tracking.root=DIR may follow the options
     tracking_uri, experiment = store_of(parser, args)
     try:
         table = study_table(load_rows(tracking_uri, experiment), args.reference)

@@ -86,6 +86,15 @@ def test_the_finetuned_model_is_an_mlflow_model_and_inspect_shows_its_answers(tm
     eval_id = job.data.tags[step_run_tag("eval")]
     assert inspect_run(cfg.tracking.uri, eval_id, world=1) == text
     assert inspect_main([eval_id, "--world", "7", "--tracking-uri", cfg.tracking.uri]) == 2
+    # The command line, named as jobs name the store: the answer alone, no download bars before it.
+    done = subprocess.run([sys.executable, "-m", "pipeline.inspect", eval_id, "--world", "1",
+                           f"tracking.root={tmp_path}"], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0 and done.stdout.split("\n", 1)[1] == text.split("\n", 1)[1]
+    assert "Downloading artifacts" not in done.stdout + done.stderr
+    from pipeline.report.build import main as report_main
+
+    assert report_main([f"tracking.root={tmp_path}", "--no-log-run"]) == 0
+    assert (tmp_path / "report" / "report.md").is_file()
 
 
 @pytest.mark.slow
