@@ -257,8 +257,8 @@ def write_dataset(out_dir: str | Path, train: list[World], test: list[World], sp
 def untrained_words(train_words: set[str], test_words: list[frozenset[str]]) -> dict:
     """The words (word-level pieces: `pipeline.lm.tokenizer.pieces`) the test conversations hold and no training
     conversation does: a model trained from scratch has never trained their embeddings, so a test world that
-    needs one fails by construction. ``worlds``: test world indices needing each word; ``n_worlds``: how many
-    test worlds need at least one."""
+    needs one fails by construction. ``words``: each such word and how many test worlds need it; ``n_worlds``:
+    how many test worlds need at least one."""
     by_word: dict[str, list[int]] = {}
     for index, words in enumerate(test_words):
         for word in words - train_words:

@@ -145,7 +145,7 @@ def evaluate(
 
 
 def run_eval(settings: EvalSettings, model: ModelSettings, texts: TextSettings, data: StepRun, finetune: StepRun,
-             step_dir: Path, data_settings: DataSettings | None = None) -> None:
+             step_dir: Path, data_settings: DataSettings) -> None:
     """The eval step's body (inside its MLflow run): decode, score, and log episodes and metrics; with
     ``settings.n_valid``, the validation worlds too (``data_settings``: the job's, which they are drawn from)."""
     log_step_dataset(data, texts, TEST_CONVERSATIONS, "test", "evaluation")
@@ -167,9 +167,7 @@ def run_eval(settings: EvalSettings, model: ModelSettings, texts: TextSettings, 
 
 
 def _evaluate_validation(settings: EvalSettings, model: ModelSettings, texts: TextSettings, data: StepRun,
-                         finetune: StepRun, test: list[World], data_settings: DataSettings | None, step_dir: Path) -> None:
-    if data_settings is None:
-        raise SettingError(f"eval.n_valid={settings.n_valid} needs the job's data settings to draw the validation split")
+                         finetune: StepRun, test: list[World], data_settings: DataSettings, step_dir: Path) -> None:
     train = load_worlds(data.artifact(TRAIN_WORLDS))
     worlds = validation_worlds(data_settings, settings.n_valid, train, test)
     stats = [asdict(world_stats(world, data_settings.train_max)) for world in worlds]
