@@ -11,7 +11,7 @@ import resource
 import time
 from functools import partial
 
-from pipeline.core.generation import GeneratorConfig, generate_worlds, world_stats
+from pipeline.core.generators import GeneratorConfig, generate_worlds, world_stats
 from pipeline.core.texts import conversation
 from pipeline.workflow.paper_data import resolve
 from pipeline.core.world import World, load_worlds

@@ -16,11 +16,12 @@ import argparse
 import time
 
 import torch
-from transformers import LlamaConfig, LlamaForCausalLM
 
 from pipeline.lm.chat import WORD_LEVEL_FORMAT, encode_prompt, turn_end_ids
 from pipeline.lm.decoding.hf import HFDecoder
-from pipeline.core.generation import GeneratorConfig, generate_worlds
+from pipeline.lm.model_settings import ModelSettings
+from pipeline.lm.models import make_model
+from pipeline.core.generators import GeneratorConfig, generate_worlds
 from pipeline.core.texts import conversation, prompt_turns
 from pipeline.lm.tokenizer import build_word_tokenizer
 
@@ -77,10 +78,7 @@ def main() -> None:
     worlds = generate_worlds(args.worlds, seed="bench-decode", cfg=GeneratorConfig(size_x=(3, 6), size_y=(3, 6)))
     texts = [t["value"] for w in worlds for t in conversation(w, "bwd", "marking-deadend", "reachable")]
     tokenizer = build_word_tokenizer(texts)
-    torch.manual_seed(0)
-    config = LlamaConfig(vocab_size=len(tokenizer), hidden_size=128, num_hidden_layers=4, num_attention_heads=2,
-                         num_key_value_heads=2, intermediate_size=512, max_position_embeddings=4096)
-    model = LlamaForCausalLM(config).eval().to(args.device)
+    model = make_model(ModelSettings(max_length=4096), tokenizer).eval().to(args.device)  # the CPU default's model
     print(f"model: {sum(p.numel() for p in model.parameters()) / 1e6:.2f}M params on {args.device}, threads {args.threads}; "
           f"{len(worlds)} worlds, sides 3-6")
 

@@ -64,8 +64,9 @@ def make_local_model(target: Path, hidden: int = 512, layers: int = 8, heads: in
     for a downloaded base model."""
     from transformers import AutoTokenizer
 
-    from pipeline.core.generation import GeneratorConfig, generate_worlds
-    from pipeline.lm.models import build_scratch_model
+    from pipeline.core.generators import GeneratorConfig, generate_worlds
+    from pipeline.lm.model_settings import ModelSettings
+    from pipeline.lm.models import make_model
     from pipeline.core.texts import MAP_VARIANTS, conversation
     from pipeline.lm.tokenizer import build_word_tokenizer
 
@@ -76,8 +77,9 @@ def make_local_model(target: Path, hidden: int = 512, layers: int = 8, heads: in
         texts = [turn["value"] for world in worlds for direction in ("fwd", "bwd") for variant in MAP_VARIANTS
                  for mode in ("optimal", "reachable") for turn in conversation(world, direction, variant, mode)]
         tokenizer = build_word_tokenizer(texts)
-    model = build_scratch_model(tokenizer, hidden_size=hidden, num_layers=layers, num_heads=heads,
-                                intermediate_size=4 * hidden, max_length=8192 if tokenizer_dir else 2048)
+    settings = ModelSettings(hidden_size=hidden, num_layers=layers, num_heads=heads, intermediate_size=4 * hidden,
+                             max_length=8192 if tokenizer_dir else 2048)
+    model = make_model(settings, tokenizer)
     model.save_pretrained(target)
     tokenizer.save_pretrained(target)
     return target

@@ -10,7 +10,7 @@ import pytest
 from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
 
-from pipeline.core.generation import GeneratorConfig, sample_world
+from pipeline.core.generators import GeneratorConfig, sample_world
 from pipeline.core.world import World, load_worlds
 
 ROOT = Path(__file__).resolve().parents[1]   # the repository
@@ -111,12 +111,13 @@ def tiny_llama3_dir(llama3_tokenizer_dir, tmp_path_factory) -> Path:
     tokens, no pad token: a `model=hf` path shaped as Meta-Llama-3-8B's folder is, at toy size)."""
     from transformers import AutoTokenizer
 
+    from pipeline.lm.model_settings import ModelSettings
     from pipeline.lm.models import build_scratch_model
 
     target = tmp_path_factory.mktemp("tiny-llama3")
     tokenizer = AutoTokenizer.from_pretrained(llama3_tokenizer_dir, local_files_only=True)
-    build_scratch_model(tokenizer, hidden_size=32, num_layers=2, num_heads=2, intermediate_size=64,
-                        max_length=8192).save_pretrained(target)
+    settings = ModelSettings(hidden_size=32, num_layers=2, num_heads=2, intermediate_size=64, max_length=8192)
+    build_scratch_model(tokenizer, settings).save_pretrained(target)
     tokenizer.save_pretrained(target)
     return target
 

@@ -1,6 +1,6 @@
 """The package's layers: core (standard library only) <- lm (torch, transformers) <- workflow (Hydra, MLflow)
 <- report. A module imports only from its own layer and the ones before it; this test fails naming the
-import that goes the wrong way."""
+import that goes the wrong way. And no modules import each other in a cycle, lazily inside a function or not."""
 
 from __future__ import annotations
 
@@ -72,6 +72,63 @@ def test_the_rule_catches_a_wrong_way_import(tmp_path, monkeypatch):
     assert len(problems) == 4
     assert any("core/bad.py:1 imports torch" in p for p in problems)
     assert any("lm/bad.py:1 imports pipeline.workflow" in p for p in problems)
+
+
+def _module(path: Path) -> str:
+    parts = path.relative_to(PACKAGE.parent).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def import_graph() -> dict[str, set[str]]:
+    """Each module of the package and the package's modules it imports anywhere in its body (so also lazily,
+    inside a function). ``from a import b`` imports the module a.b when there is one, else a."""
+    paths = {_module(path): path for path in sorted(PACKAGE.rglob("*.py"))}
+    graph = {}
+    for name, path in paths.items():
+        package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+        targets = set()
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Import):
+                targets |= {alias.name for alias in node.names}
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module
+                if node.level:  # relative: from the module's package, less one level per dot after the first
+                    base = ".".join(filter(None, (package.rsplit(".", node.level - 1)[0], node.module)))
+                targets |= {f"{base}.{alias.name}" if f"{base}.{alias.name}" in paths else base for alias in node.names}
+        graph[name] = {target for target in targets if target in paths and target != name}
+    return graph
+
+
+def import_cycle(graph: dict[str, set[str]]) -> list[str]:
+    """One cycle of the graph as the modules along it (the first repeated at the end), or [] if it has none."""
+    done: set[str] = set()
+
+    def visit(name: str, path: list[str]) -> list[str]:
+        if name in path:
+            return path[path.index(name):] + [name]
+        if name in done:
+            return []
+        for target in sorted(graph[name]):
+            cycle = visit(target, [*path, name])
+            if cycle:
+                return cycle
+        done.add(name)
+        return []
+
+    return next((cycle for name in sorted(graph) if (cycle := visit(name, []))), [])
+
+
+def test_no_modules_import_each_other_in_a_cycle():
+    assert import_cycle(import_graph()) == []
+
+
+def test_the_cycle_check_sees_lazy_imports(tmp_path, monkeypatch):
+    fake = tmp_path / "pipeline" / "core"
+    fake.mkdir(parents=True)
+    (fake / "a.py").write_text("from pipeline.core.b import f\n")
+    (fake / "b.py").write_text("def f():\n    from pipeline.core import a\n")
+    monkeypatch.setattr(sys.modules[__name__], "PACKAGE", tmp_path / "pipeline")
+    assert import_cycle(import_graph()) == ["pipeline.core.a", "pipeline.core.b", "pipeline.core.a"]
 
 
 def test_the_top_level_keeps_the_domain_api():

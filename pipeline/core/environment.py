@@ -32,8 +32,9 @@ class StepResult:
 
 
 @dataclass
-class EpisodeRecord:
-    """One finished (or cut-off) episode, flat enough for a table row."""
+class EpisodeTranscript:
+    """What the environment saw of one played (finished or cut-off) episode: the moves and how it ended, flat
+    enough for a table row."""
 
     outcome: Outcome | None
     moves: list[str]
@@ -116,9 +117,9 @@ class GridEnv:
             return self._end(Outcome.MAX_STEP)
         return StepResult(observation=observation(self.world, target), done=False, outcome=None)
 
-    def record(self) -> EpisodeRecord:
-        """The episode so far as a record."""
-        return EpisodeRecord(
+    def transcript(self) -> EpisodeTranscript:
+        """The episode so far."""
+        return EpisodeTranscript(
             outcome=self.outcome,
             moves=list(self.moves),
             n_moves=len(self.moves),

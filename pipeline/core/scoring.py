@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 from pipeline.core.texts import golden_answer, thought_lines
 from pipeline.core.variants import MAP_VARIANTS
@@ -86,10 +86,6 @@ class PlanScore:
     plan_length: int | None
     optimal_length: int
     moves: tuple[str, ...] = ()      # the parsed plan (empty when it does not parse)
-
-    def to_dict(self) -> dict:
-        """Plain dict for a table row."""
-        return asdict(self)
 
 
 def plan_moves(parsed: ParsedAnswer) -> list[str] | None:

@@ -12,6 +12,9 @@ from pipeline.core.world import MOVES, Cell, World, move_between, step
 # The instruction is the same English text in every conversation: a model trained from scratch learns
 # nothing from it, yet pays for its tokens in every step; pretrained models keep the paper's prompt.
 PROMPTS: tuple[str, ...] = ("paper", "task")
+# The job's default (`ModelSettings.prompt`) and every signature's: the task turn alone, for the models trained
+# from scratch; the paper-scale presets choose "paper".
+DEFAULT_PROMPT = "task"
 
 # How a map's (and CoT's) step headers are written: the paper's `Step k:`, or `Step:` with no number
 # (not in the paper). A model trained from scratch learns the number words only up to the longest training
@@ -88,7 +91,7 @@ def first_human_text(world: World) -> str:
     return task_text(world) + observation(world, world.start)
 
 
-def prompt_turns(world: World, prompt: str = "paper") -> list[dict[str, str]]:
+def prompt_turns(world: World, prompt: str = DEFAULT_PROMPT) -> list[dict[str, str]]:
     """What a model is prompted with: the paper's three turns, or (``prompt="task"``) the task turn alone."""
     check_choice("prompt", prompt, PROMPTS)
     task = {"from": "human", "value": first_human_text(world)}
@@ -244,7 +247,7 @@ def _answer(world: World, direction: str, variant: str, mode: str, moves: list[s
 
 
 def conversation(
-    world: World, direction: str, variant: str, mode: str, seed: int = 0, prompt: str = "paper",
+    world: World, direction: str, variant: str, mode: str, seed: int = 0, prompt: str = DEFAULT_PROMPT,
     steps: str = "numbered",
 ) -> list[dict[str, str]]:
     """The whole training conversation (docs/spec.md §2): prompt, first answer and, when reachable, the walk.

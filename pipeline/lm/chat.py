@@ -53,10 +53,6 @@ class ChatFormat:
     def end(self, role: str) -> str:
         return self.human_end if role == "human" and self.human_end is not None else self.turn_end
 
-    @property
-    def stop_text(self) -> str:
-        return self.turn_end if self.stop is None else self.stop
-
 
 # The word-level tokenizer's format; paper-scale models name their own in the model config.
 WORD_LEVEL_FORMAT = ChatFormat()
@@ -95,11 +91,6 @@ def encode_conversation(
         ids += piece
         labels += piece if target else [IGNORE_INDEX] * len(piece)
     return ids, labels
-
-
-def render_conversation(fmt: ChatFormat, turns: Sequence[dict], generation_prompt: bool = False) -> str:
-    """The text `encode_conversation` encodes (and, with ``generation_prompt``, the gpt prefix after it)."""
-    return "".join(text for text, _ in _pieces(fmt, turns, generation_prompt))
 
 
 def encode_prompt(tokenizer: TextTokenizer, fmt: ChatFormat, turns: Sequence[dict]) -> list[int]:

@@ -11,7 +11,7 @@ from enum import Enum
 from typing import Optional
 
 from pipeline.core.checks import SettingError, require
-from pipeline.core.texts import PROMPTS, STEP_HEADERS
+from pipeline.core.texts import DEFAULT_PROMPT, PROMPTS, STEP_HEADERS
 from pipeline.lm.chat import ChatFormat
 
 DTYPES = ("float32", "bfloat16", "float16")
@@ -53,7 +53,7 @@ class ModelSettings:
     attn_implementation: str = "sdpa"
     trust_remote_code: bool = False
     chat_format: ChatFormat = field(default_factory=ChatFormat)
-    prompt: str = "task"
+    prompt: str = DEFAULT_PROMPT
     # How the answers' step headers are written (pipeline.core.texts.STEP_HEADERS): the paper's `Step k:`, or
     # `Step:` (plain: no number word that larger test worlds would need and training never shows).
     step_headers: str = field(default="numbered", metadata={"hash_if_set": True})

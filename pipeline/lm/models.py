@@ -26,7 +26,7 @@ from transformers import (
 )
 
 from pipeline.lm.chat import ChatFormat
-from pipeline.lm.model_settings import ATTENTION_IMPLEMENTATIONS, DTYPES, POSITIONS, ModelKind, ModelSettings
+from pipeline.lm.model_settings import ATTENTION_IMPLEMENTATIONS, DTYPES, ModelKind, ModelSettings
 from pipeline.lm.tokenizer import build_word_tokenizer
 
 CHAT_FORMAT_FILE = "chat_format.json"
@@ -73,10 +73,7 @@ def make_model(settings: ModelSettings, tokenizer: PreTrainedTokenizerBase, *, s
     """THE place a model to train comes from: a new Llama sized by ``settings`` (scratch, seeded), or the
     pretrained one at ``settings.path`` with rows for the tokens its tokenizer added (`fit_embeddings`)."""
     if settings.kind is ModelKind.scratch:
-        return build_scratch_model(tokenizer, hidden_size=settings.hidden_size, num_layers=settings.num_layers,
-                                   num_heads=settings.num_heads, intermediate_size=settings.intermediate_size,
-                                   max_length=settings.max_length, attn_implementation=settings.attn_implementation,
-                                   positions=settings.positions, rope_theta=settings.rope_theta, seed=seed)
+        return build_scratch_model(tokenizer, settings, seed=seed)
     model = load_model(settings.path, dtype=settings.dtype, trust_remote_code=settings.trust_remote_code,
                        attn_implementation=settings.attn_implementation)
     return fit_embeddings(model, tokenizer, seed=seed)
@@ -90,54 +87,41 @@ class ModelLoadError(ValueError):
     """A model or tokenizer directory that is missing, incomplete or unreadable."""
 
 
-def build_scratch_model(
-    tokenizer: PreTrainedTokenizerBase,
-    *,
-    hidden_size: int = 128,
-    num_layers: int = 4,
-    num_heads: int = 2,
-    intermediate_size: int = 512,
-    max_length: int = 2048,
-    attn_implementation: str = "sdpa",
-    positions: str = "rope",
-    rope_theta: float = 10000.0,
-    seed: int = 0,
-) -> PreTrainedModel:
-    """A randomly initialised fp32 Llama sized for ``tokenizer``; the same seed gives the same weights.
+def build_scratch_model(tokenizer: PreTrainedTokenizerBase, settings: ModelSettings, *, seed: int = 0
+                        ) -> PreTrainedModel:
+    """A randomly initialised fp32 Llama sized by ``settings`` for ``tokenizer``; the same seed gives the same
+    weights (`make_model` is the entry point; this is its scratch half).
 
-    ``positions`` (`POSITIONS`): ``rope`` builds a Llama; ``nope`` and ``alternate`` build the same network as
-    transformers' SmolLM3 (a Llama whose layers each switch RoPE on or off), with RoPE in no layer or in
-    layers 0, 2, ...; ``rope_theta`` is RoPE's base. The global torch RNG is left as it was, so building a model does not shift later draws.
+    ``settings.positions`` (`POSITIONS`): ``rope`` builds a Llama; ``nope`` and ``alternate`` build the same
+    network as transformers' SmolLM3 (a Llama whose layers each switch RoPE on or off), with RoPE in no layer or
+    in layers 0, 2, ...; ``settings.rope_theta`` is RoPE's base. The global torch RNG is left as it was, so
+    building a model does not shift later draws.
     """
-    if hidden_size % num_heads:
-        raise ValueError(f"hidden_size={hidden_size} must be a multiple of num_heads={num_heads}")
-    if positions not in POSITIONS:
-        raise ValueError(f"positions={positions!r} is not supported; allowed: {', '.join(POSITIONS)}")
-    _check_attention(attn_implementation)
+    s = settings
     config_class, extra = LlamaConfig, {}
-    if positions != "rope":
+    if s.positions != "rope":
         # SmolLM3's no_rope_layers: 1 = this layer uses RoPE, 0 = it does not.
-        uses_rope = [int(positions == "alternate" and layer % 2 == 0) for layer in range(num_layers)]
+        uses_rope = [int(s.positions == "alternate" and layer % 2 == 0) for layer in range(s.num_layers)]
         config_class, extra = SmolLM3Config, {"no_rope_layers": uses_rope, "use_sliding_window": False}
     config = config_class(
         vocab_size=len(tokenizer),
-        hidden_size=hidden_size,
-        num_hidden_layers=num_layers,
-        num_attention_heads=num_heads,
-        num_key_value_heads=num_heads,
-        intermediate_size=intermediate_size,
-        max_position_embeddings=max_length,
+        hidden_size=s.hidden_size,
+        num_hidden_layers=s.num_layers,
+        num_attention_heads=s.num_heads,
+        num_key_value_heads=s.num_heads,
+        intermediate_size=s.intermediate_size,
+        max_position_embeddings=s.max_length,
         pad_token_id=tokenizer.pad_token_id,
         bos_token_id=tokenizer.bos_token_id,
         eos_token_id=tokenizer.eos_token_id,
         tie_word_embeddings=True,
-        attn_implementation=attn_implementation,
-        rope_theta=rope_theta,
+        attn_implementation=s.attn_implementation,
+        rope_theta=s.rope_theta,
         **extra,
     )
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
-        model = (LlamaForCausalLM if positions == "rope" else SmolLM3ForCausalLM)(config)
+        model = (LlamaForCausalLM if s.positions == "rope" else SmolLM3ForCausalLM)(config)
     return model.to(torch.float32)
 
 

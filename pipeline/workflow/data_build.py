@@ -17,8 +17,8 @@ from typing import Iterable, Optional
 import mlflow
 from tqdm import tqdm
 
-from pipeline.core.generation import GENERATORS, GeneratorConfig, generate_worlds, world_stats
-from pipeline.core.texts import conversation
+from pipeline.core.generators import GeneratorConfig, check_ranges, generate_worlds, world_stats
+from pipeline.core.texts import DEFAULT_PROMPT, conversation
 from pipeline.core.variants import BY_NAME, text_direction
 from pipeline.core.world import World, load_worlds, save_worlds
 from pipeline.lm.tokenizer import count_pieces, piece_set
@@ -37,14 +37,18 @@ SUMMARY = "stats/summary.json"
 class DataSettings:
     """The worlds of a job: the train and test splits' sizes, obstacles and counts (the paper's sampling
     by default). ``frame`` bounds every coordinate; ``test_file`` takes the test split from a file of worlds
-    in the paper's schema instead of generating it. The defaults are the base of the ``conf/data`` presets."""
+    in the paper's schema instead of generating it. The defaults are the base of the ``conf/data`` presets.
 
-    train_size_x: list[int] = field(default_factory=lambda: [2, 10])
-    train_size_y: list[int] = field(default_factory=lambda: [2, 10])
+    What the generator takes defaults to `GeneratorConfig`'s defaults (the test sizes are the data's own) and is
+    checked as `GeneratorConfig` checks it (`check_ranges`), both splits at once."""
+
+    train_size_x: list[int] = field(default_factory=lambda: list(GeneratorConfig.size_x))
+    train_size_y: list[int] = field(default_factory=lambda: list(GeneratorConfig.size_y))
+    # The paper's test worlds: sides up to twice the train sides'.
     test_size_x: list[int] = field(default_factory=lambda: [2, 20])
     test_size_y: list[int] = field(default_factory=lambda: [2, 20])
-    frame: int = 20
-    p_pit: list[float] = field(default_factory=lambda: [0.1, 0.5])
+    frame: int = GeneratorConfig.frame
+    p_pit: list[float] = field(default_factory=lambda: list(GeneratorConfig.p_pit))
     n_train: int = 50_000
     n_test: int = 3_000
     # The test split from a file of worlds in the paper's schema instead of generated ones: a path, or "paper"
@@ -56,17 +60,13 @@ class DataSettings:
     seed: int = 0
     workers: int = 2
     # How worlds are grown: "project" (a dead end restarts the tree) or "paper" (the paper's generator: it
-    # backtracks over its choices, and lists walls and pits in its order; see pipeline.core.paper_generation).
-    generator: str = "project"
+    # backtracks over its choices, and lists walls and pits in its order; see pipeline.core.generators.paper).
+    generator: str = GeneratorConfig.generator
 
     def __post_init__(self) -> None:
-        require(self.generator in GENERATORS, "generator", self.generator, f"one of {', '.join(GENERATORS)}")
-        for name in ("train_size_x", "train_size_y", "test_size_x", "test_size_y"):
-            value = list(getattr(self, name))
-            require(len(value) == 2, name, value, "[min, max]")
-            require(2 <= value[0] <= value[1] <= self.frame, name, value, f"2 <= min <= max <= frame ({self.frame})")
-        p_pit = list(self.p_pit)
-        require(len(p_pit) == 2 and 0.0 <= p_pit[0] <= p_pit[1] <= 1.0, "p_pit", p_pit, "[min, max] with 0 <= min <= max <= 1")
+        # As lists, so a message writes a range the same way whether it came as a list, a tuple or from the config.
+        sizes = ("train_size_x", "train_size_y", "test_size_x", "test_size_y")
+        check_ranges(self.generator, self.frame, list(self.p_pit), {name: list(getattr(self, name)) for name in sizes})
         for name in ("n_train", "n_test", "workers"):
             require(getattr(self, name) >= 1, name, getattr(self, name), "at least 1")
 
@@ -90,12 +90,12 @@ class TextSettings:
     variant: str
     mode: str
     seed: int = 0
-    prompt: str = "paper"   # texts.PROMPTS: the paper's three prompt turns, or the task turn alone
+    prompt: str = DEFAULT_PROMPT   # texts.PROMPTS: the paper's three prompt turns, or the task turn alone
     # texts.STEP_HEADERS: `Step k:` (the paper's) or `Step:`; in the data-build hash only when set.
     step_headers: str = field(default="numbered", metadata={"hash_if_set": True})
 
     @classmethod
-    def of(cls, direction: str, variant: str, mode: str, seed: int = 0, prompt: str = "paper",
+    def of(cls, direction: str, variant: str, mode: str, seed: int = 0, prompt: str = DEFAULT_PROMPT,
            step_headers: str = "numbered") -> "TextSettings":
         # Direction-free variants (NONE, DFS): both directions share one dataset (and model). Step headers
         # matter only where a Thought has them (maps and CoT).

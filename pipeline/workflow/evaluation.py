@@ -1,5 +1,5 @@
 """The eval step: prompt the finetuned model with each test world, score what it does, keep one record
-(`pipeline.core.episodes.Episode`) per episode, and log them with their metrics.
+(`pipeline.core.episodes.ScoredEpisode`) per episode, and log them with their metrics.
 
 Records are appended to a partial file as episodes finish, so an interrupted eval resumes from its
 completed episodes; the finished eval orders them by world index. Metrics are computed from the records
@@ -18,9 +18,9 @@ from tqdm import tqdm
 
 from pipeline.core.checks import SettingError, require
 from pipeline.core.environment import RULES
-from pipeline.core.generation import world_stats
+from pipeline.core.generators import world_stats
 from pipeline.core.episodes import metrics, optimal_episode, reachable_episode
-from pipeline.core.texts import prompt_turns
+from pipeline.core.texts import DEFAULT_PROMPT, prompt_turns
 from pipeline.core.world import World, load_worlds
 from pipeline.lm.decoding import BACKENDS, Decoder, make_decoder
 from pipeline.lm.model_settings import ModelSettings
@@ -106,7 +106,7 @@ def evaluate(
     max_moves: int,
     partial_path: str | Path,
     chunk_size: int = 64,
-    prompt: str = "paper",
+    prompt: str = DEFAULT_PROMPT,
     rules: str = "project",
     steps: str = "numbered",
 ) -> list[dict]:

@@ -10,7 +10,7 @@ Layout of an experiment:
   and ``cogmap.hash`` (the hash of everything that decides the step's output).
 
 The eval run logs the metrics in ``EVAL_METRICS`` and the artifact ``episodes.jsonl`` (one record per test
-world: `pipeline.core.episodes.Episode`); with a checkpoint curve it also logs ``curve_success_rate`` with
+world: `pipeline.core.episodes.ScoredEpisode`); with a checkpoint curve it also logs ``curve_success_rate`` with
 ``step`` = the checkpoint's training step, and each checkpoint's episodes as ``curve/step-<n>.jsonl``. The
 finetune run holds transformers' training metrics (``loss`` by step), the model under ``model/`` with its
 tokenizer, and an MLflow logged model. Data-build, finetune and eval runs log the conversations they use as

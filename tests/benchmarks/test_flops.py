@@ -9,6 +9,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 
 from flops import count_parameters, training_flops, training_flops_per_token  # noqa: E402
 
+from pipeline.lm.model_settings import ModelSettings
 from pipeline.lm.models import build_scratch_model  # noqa: E402
 from pipeline.lm.tokenizer import build_word_tokenizer  # noqa: E402
 
@@ -21,7 +22,7 @@ def tokenizer():
 
 
 def test_flops_count_weights_and_causal_attention(tokenizer):
-    model = build_scratch_model(tokenizer, **TINY)
+    model = build_scratch_model(tokenizer, ModelSettings(**TINY))
     n = count_parameters(model)  # tied embeddings: the output head is a matmul over the shared matrix
     assert n == sum(p.numel() for p in model.parameters())
     assert training_flops_per_token(model, 0) == 6 * n

@@ -8,7 +8,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from pipeline import conversation
-from pipeline.core.environment import EpisodeRecord, GridEnv, Outcome
+from pipeline.core.environment import EpisodeTranscript, GridEnv, Outcome
 from pipeline.core.scoring import parse_action, parse_action_paper
 from pipeline.core.texts import prompt_turns
 from pipeline.core.variants import DIRECTIONS, VARIANTS
@@ -16,7 +16,7 @@ from pipeline.core.variants import DIRECTIONS, VARIANTS
 
 def test_reset_is_the_third_prompt_turn(example_world, golden):
     env = GridEnv(example_world)
-    assert env.reset() == golden["turn_3"] == prompt_turns(example_world)[2]["value"]
+    assert env.reset() == golden["turn_3"] == prompt_turns(example_world, "paper")[2]["value"]
     assert env.position == example_world.start and env.moves == [] and not env.done
 
 
@@ -27,9 +27,9 @@ def test_success(example_world):
     assert [r.done for r in results] == [False] * 4 + [True]
     assert results[-1].outcome is Outcome.SUCCESS and results[-1].observation is None
     assert results[0].observation == "Current:\n(1, 0)\nPossible:\n(0, 0)\nleft\n(2, 0)\nright"
-    record = env.record()
-    assert record.outcome is Outcome.SUCCESS and record.n_moves == record.optimal_length == 5
-    assert record.to_dict()["outcome"] == "success"
+    transcript = env.transcript()
+    assert transcript.outcome is Outcome.SUCCESS and transcript.n_moves == transcript.optimal_length == 5
+    assert transcript.to_dict()["outcome"] == "success"
 
 
 @pytest.mark.parametrize(
@@ -52,7 +52,7 @@ def test_invalid(example_world, answer):
     env.reset()
     result = env.step(answer)
     assert result.outcome is Outcome.INVALID and env.moves == []
-    assert env.record().to_dict()["invalid_answer"] == answer
+    assert env.transcript().to_dict()["invalid_answer"] == answer
 
 
 def test_max_moves(example_world):
@@ -61,7 +61,7 @@ def test_max_moves(example_world):
     results = [env.step(m) for m in ["up", "down"] * 100]
     assert not any(r.done for r in results[:-1])
     assert results[-1].outcome is Outcome.MAX_STEP
-    assert env.record().n_moves == 200
+    assert env.transcript().n_moves == 200
 
 
 def test_goal_on_the_last_allowed_move_is_success(example_world):
@@ -90,7 +90,7 @@ def test_record_is_a_dataclass_row(example_world):
     env = GridEnv(example_world)
     env.reset()
     env.step("up")
-    row = env.record().to_dict()
+    row = env.transcript().to_dict()
     assert row == {
         "outcome": None,
         "moves": ["up"],
@@ -101,7 +101,7 @@ def test_record_is_a_dataclass_row(example_world):
         "final_position": [0, 1],
         "invalid_answer": None,
     }
-    assert isinstance(env.record(), EpisodeRecord)
+    assert isinstance(env.transcript(), EpisodeTranscript)
 
 
 def _moves_of(turns: list[dict]) -> list[str]:
@@ -112,7 +112,7 @@ def _moves_of(turns: list[dict]) -> list[str]:
 
 @given(worlds(), st.sampled_from([v for v in VARIANTS]), st.sampled_from(DIRECTIONS), st.integers(0, 99))
 def test_replaying_a_reachable_conversation_succeeds(world, variant, direction, seed):
-    turns = conversation(world, direction, variant, "reachable", seed=seed)
+    turns = conversation(world, direction, variant, "reachable", seed=seed, prompt="paper")
     env = GridEnv(world)
     assert env.reset() == turns[2]["value"]
     moves = _moves_of(turns)
@@ -120,7 +120,7 @@ def test_replaying_a_reachable_conversation_succeeds(world, variant, direction, 
     assert observations[-1].outcome is Outcome.SUCCESS
     assert [r.observation for r in observations[:-1]] == [t["value"] for t in turns[4::2]]
     if variant != "dfs":
-        assert env.record().n_moves == env.record().optimal_length
+        assert env.transcript().n_moves == env.transcript().optimal_length
 
 
 def _walk_to_the_goal(env, world, rules_answer=lambda move: move):

@@ -1,19 +1,22 @@
-"""The episode record: its fields are the episodes.jsonl schema, its world statistics are WorldStats', and
-the metrics come from records alone."""
+"""The scored episode: its fields are the episodes.jsonl schema, it holds the world's WorldStats (written flat),
+and the metrics come from records alone."""
 
 from __future__ import annotations
 
 from dataclasses import asdict
 
-from pipeline.core.episodes import EPISODE_FIELDS, STAT_FIELDS, metrics, optimal_episode, reachable_episode
-from pipeline.core.generation import world_stats
+from pipeline.core.episodes import (EPISODE_FIELDS, EVAL_METRICS, STAT_FIELDS, metrics, optimal_episode,
+                                    reachable_episode)
+from pipeline.core.generators import world_stats
 from pipeline.core.texts import golden_answer
 
 
 def test_a_record_carries_the_worlds_statistics_right_after_its_index(example_world):
     assert EPISODE_FIELDS[1:1 + len(STAT_FIELDS)] == STAT_FIELDS
     stats = asdict(world_stats(example_world))
-    record = optimal_episode(0, example_world, stats, "", None, "fwd", "none").to_dict()
+    episode = optimal_episode(0, example_world, stats, "", None, "fwd", "none")
+    assert episode.stats == world_stats(example_world)
+    record = episode.to_dict()
     assert tuple(record) == EPISODE_FIELDS and {k: record[k] for k in STAT_FIELDS} == stats
 
 
@@ -27,3 +30,5 @@ def test_metrics_count_successes_by_split_and_outcomes(example_world):
     assert values["n_episodes"] == 3 and values["success_rate"] == 1 / 3
     assert values["success_rate_interp"] == 1 / 2 and values["success_rate_extrap"] == 0.0
     assert values["rate_deadend"] == 1 / 3 and values["rate_map_exact"] == 1 / 2
+    # Records with every subset non-empty (interpolated and not, graded) get every metric.
+    assert tuple(values) == EVAL_METRICS

@@ -14,7 +14,7 @@ import pytest
 
 from pipeline.core.environment import GridEnv, Outcome
 from pipeline.core.episodes import optimal_episode, reachable_episode
-from pipeline.core.generation import GeneratorConfig, sample_world
+from pipeline.core.generators import GeneratorConfig, sample_world
 from pipeline.core.scoring import parse_action, parse_answer, plan_moves, score_optimal
 from pipeline.core.texts import golden_answer
 from pipeline.core.variants import MAP_VARIANTS

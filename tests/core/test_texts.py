@@ -56,7 +56,7 @@ def test_constants():
 
 def test_golden_turn_3(example_world, golden):
     assert task_text(example_world) + observation(example_world, example_world.start) == golden["turn_3"]
-    assert prompt_turns(example_world) == [
+    assert prompt_turns(example_world, "paper") == [
         {"from": "human", "value": INSTRUCTION},
         {"from": "gpt", "value": "OK"},
         {"from": "human", "value": golden["turn_3"]},
@@ -161,12 +161,12 @@ def test_unknown_names(example_world, args, message):
 
 
 def test_reachable_conversation_shape(example_world):
-    turns = conversation(example_world, "bwd", "marking-deadend", "reachable")
+    turns = conversation(example_world, "bwd", "marking-deadend", "reachable", prompt="paper")
     assert [t["from"] for t in turns] == ["human", "gpt"] * (len(turns) // 2)
     assert turns[3]["value"].endswith("\nAction:\nright")
     assert [t["value"] for t in turns[5::2]] == ["right", "up", "right", "up"]
     assert turns[4]["value"] == observation(example_world, (1, 0))
-    assert len(conversation(example_world, "bwd", "marking-deadend", "optimal")) == 4
+    assert len(conversation(example_world, "bwd", "marking-deadend", "optimal", prompt="paper")) == 4
 
 
 def test_dfs_is_seeded_and_walks_to_the_goal(example_world):
@@ -230,7 +230,7 @@ def test_task_prompt_is_the_paper_prompt_without_the_instruction(example_world, 
     assert task == paper[2:] == [{"from": "human", "value": golden["turn_3"]}]
     for mode in MODES:
         assert conversation(example_world, "bwd", "marking-deadend", mode, prompt="task") == \
-            conversation(example_world, "bwd", "marking-deadend", mode)[2:]
+            conversation(example_world, "bwd", "marking-deadend", mode, prompt="paper")[2:]
     with pytest.raises(ValueError, match="unknown prompt 'none'; allowed: paper, task"):
         prompt_turns(example_world, "none")
 

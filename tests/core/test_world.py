@@ -10,7 +10,7 @@ import pytest
 from conftest import free_cells_form_a_tree, worlds
 from hypothesis import given
 
-from pipeline.core.generation import world_stats
+from pipeline.core.generators import world_stats
 from pipeline.core.world import MOVES, World, WorldError, load_worlds, move_between, save_worlds, step
 
 

@@ -18,13 +18,21 @@ from typing import Sequence
 from omegaconf import OmegaConf
 
 from conftest import ROOT
-from pipeline.core.generation import GeneratorConfig, generate_worlds
+from pipeline.core.generators import GeneratorConfig, generate_worlds
 from pipeline.core.texts import conversation
 from pipeline.core.variants import BY_NAME, DIRECTIONS, MODES, VARIANTS
 from pipeline.lm.chat import IGNORE_INDEX, ChatFormat
 
 HUMAN, GPT = "[INST]", "[/INST]\n"          # the template's two roles
 GPT_END = "<|end_of_text|><|begin_of_text|>"  # what closes an answer (a human turn has no closing text)
+
+
+def render_conversation(fmt: ChatFormat, turns: Sequence[dict], generation_prompt: bool = False) -> str:
+    """A conversation as one text, written from the format's fields alone: each turn's prefix, value and end,
+    ``bos`` once (with ``generation_prompt``, the gpt prefix after it). The encoder's ids must be this text's."""
+    text = fmt.bos + "".join(fmt.prefix(turn["from"], index == 0) + turn["value"] + fmt.end(turn["from"])
+                             for index, turn in enumerate(turns))
+    return text + (fmt.gpt_prefix if generation_prompt else "")
 
 
 def fastchat_prompt(turns: Sequence[dict]) -> str:

@@ -10,9 +10,9 @@ from tokenizers import Tokenizer, decoders, models, pre_tokenizers
 from transformers import PreTrainedTokenizerFast
 
 from conftest import ROOT
-from fastchat_reference import paper_conversations, paper_format
+from fastchat_reference import paper_conversations, paper_format, render_conversation
 from pipeline.lm.chat import (
-    IGNORE_INDEX, ChatFormat, encode_conversation, encode_followup, encode_prompt, render_conversation, stop_ids,
+    IGNORE_INDEX, ChatFormat, encode_conversation, encode_followup, encode_prompt, stop_ids,
     turn_end_ids,
 )
 

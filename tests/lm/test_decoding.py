@@ -11,7 +11,7 @@ from transformers import LlamaConfig, LlamaForCausalLM
 from pipeline.lm.chat import WORD_LEVEL_FORMAT, encode_prompt, turn_end_ids
 from pipeline.lm.decoding.hf import HFDecoder
 from pipeline.core.environment import Outcome
-from pipeline.core.generation import GeneratorConfig, generate_worlds
+from pipeline.core.generators import GeneratorConfig, generate_worlds
 from pipeline.core.scoring import parse_action
 from pipeline.core.texts import conversation, prompt_turns
 from pipeline.lm.tokenizer import build_word_tokenizer

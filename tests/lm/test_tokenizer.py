@@ -3,8 +3,9 @@
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.lm.chat import WORD_LEVEL_FORMAT, encode_conversation, render_conversation
-from pipeline.core.generation import GeneratorConfig, generate_worlds
+from fastchat_reference import render_conversation
+from pipeline.lm.chat import WORD_LEVEL_FORMAT, encode_conversation
+from pipeline.core.generators import GeneratorConfig, generate_worlds
 from pipeline.core.texts import conversation
 from pipeline.lm.tokenizer import build_word_tokenizer, count_pieces, pieces
 
@@ -46,7 +47,7 @@ def test_any_text_over_known_pieces_decodes_to_itself_or_marks_unknowns(text):
 
 
 def test_labels_cover_gpt_turns_only():
-    turns = conversation(WORLDS[0], "bwd", "no-all", "optimal")
+    turns = conversation(WORLDS[0], "bwd", "no-all", "optimal", prompt="paper")
     ids, labels = encode_conversation(TOKENIZER, WORD_LEVEL_FORMAT, turns)
     targets = [t for t, l in zip(ids, labels) if l != -100]
     answer = TOKENIZER.encode(turns[-1]["value"] + "</s>", add_special_tokens=False)

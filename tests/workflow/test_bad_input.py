@@ -75,11 +75,12 @@ def test_bad_data_and_eval_values_are_refused_naming_them(store, overrides, erro
 
 
 def _model_dir(folder: Path, weights: bytes | None) -> Path:
+    from pipeline.lm.model_settings import ModelSettings
     from pipeline.lm.models import build_scratch_model
     from pipeline.lm.tokenizer import build_word_tokenizer
 
     tokenizer = build_word_tokenizer(["Plan:\nup"], frame=5)
-    model = build_scratch_model(tokenizer, hidden_size=16, num_layers=1, num_heads=2, intermediate_size=16)
+    model = build_scratch_model(tokenizer, ModelSettings(hidden_size=16, num_layers=1, num_heads=2, intermediate_size=16))
     folder.mkdir()
     model.config.save_pretrained(folder)
     tokenizer.save_pretrained(folder)

@@ -5,6 +5,7 @@ import json
 import pytest
 
 from pipeline.lm.chat import read_conversations
+from pipeline.lm.model_settings import ModelSettings
 from pipeline.workflow.data_build import (
     DataSettings,
     TEST_CONVERSATIONS, TEST_WORLDS, TRAIN_CONVERSATIONS, TextSettings, build_splits, dataset_sha256,
@@ -59,8 +60,9 @@ def test_the_task_prompt_drops_the_instruction_turns_and_nothing_else(tmp_path):
     paper, task = (read_conversations(tmp_path / p / TRAIN_CONVERSATIONS) for p in ("paper", "task"))
     assert [turns[2:] for turns in paper] == task
     assert all(len(turns) == 2 and turns[0]["value"].startswith("Grid is from") for turns in task)
-    assert TextSettings.of("bwd", "marking-deadend", "optimal", prompt="task") != TextSettings.of("bwd", "marking-deadend",
-                                                                                            "optimal")
+    assert TextSettings.of("bwd", "marking-deadend", "optimal", prompt="task") != TextSettings.of(
+        "bwd", "marking-deadend", "optimal", prompt="paper")
+    assert TextSettings.of("bwd", "marking-deadend", "optimal").prompt == ModelSettings().prompt  # one default
 
 
 def test_direction_free_baselines_share_one_text_spec():

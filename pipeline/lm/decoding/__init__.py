@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from typing import Protocol
 
+from pipeline.core.texts import DEFAULT_PROMPT
 from pipeline.core.world import World
 
 BACKENDS = ("hf", "vllm")
@@ -15,7 +16,7 @@ class Decoder(Protocol):
 
     def generate(self, prompts: list[list[dict]]) -> list: ...
 
-    def play(self, worlds: list[World], *, max_moves: int, on_episode=None, prompt: str = "paper",
+    def play(self, worlds: list[World], *, max_moves: int, on_episode=None, prompt: str = DEFAULT_PROMPT,
              rules: str = "project") -> list: ...
 
 

@@ -15,10 +15,11 @@ from typing import Callable, Iterable, Sequence
 import torch
 from transformers import DynamicCache
 
+from pipeline.core.texts import DEFAULT_PROMPT
 from pipeline.core.world import World
 from pipeline.lm.chat import ChatFormat, TextTokenizer, encode_prompt, stop_ids
 from pipeline.lm.decoding.loop import (
-    Continuation, EpisodeResult, Generation, HistorySequences, HistoryStrategy, MoveChooser, Request, StopReason,
+    Continuation, DecodedEpisode, Generation, HistorySequences, HistoryStrategy, MoveChooser, Request, StopReason,
     context_error,
     generation, play_episodes,
 )
@@ -197,12 +198,12 @@ class HFDecoder:
         worlds: Sequence[World],
         *,
         max_moves: int = 200,
-        on_episode: Callable[[EpisodeResult], None] | None = None,
+        on_episode: Callable[[DecodedEpisode], None] | None = None,
         strategy: HistoryStrategy = "cached",
         choose_move: MoveChooser | None = None,
-        prompt: str = "paper",
+        prompt: str = DEFAULT_PROMPT,
         rules: str = "project",
-    ) -> list[EpisodeResult]:
+    ) -> list[DecodedEpisode]:
         """Play every world's episode, `batch_size` at a time, each keeping its KV cache across turns.
 
         `strategy` "reencode" (batched, history re-encoded every turn) and "generate" (one `model.generate`

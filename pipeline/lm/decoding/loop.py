@@ -1,5 +1,5 @@
 """The backend-independent part of greedy decoding: result types, and the episode loop of the reachable
-setting (env, parsing, records), which drives any backend that can *continue sequences* (`SequenceBackend`):
+setting (env, parsing, transcripts), which drives any backend that can *continue sequences* (`SequenceBackend`):
 the HF backend (`pipeline.lm.decoding.hf`) and vLLM (`pipeline.lm.decoding.vllm`).
 
 In the reachable setting an episode keeps its sequence across turns: the env's next observation is encoded
@@ -13,9 +13,9 @@ from dataclasses import dataclass, field
 from typing import Callable, Iterable, Literal, NamedTuple, Protocol, Sequence
 
 from pipeline.lm.chat import ChatFormat, TextTokenizer, encode_followup, encode_prompt, stop_ids, turn_end_ids
-from pipeline.core.environment import EpisodeRecord, GridEnv, Outcome
+from pipeline.core.environment import EpisodeTranscript, GridEnv, Outcome
 from pipeline.core.scoring import parse_action, parse_action_paper
-from pipeline.core.texts import prompt_turns
+from pipeline.core.texts import DEFAULT_PROMPT, prompt_turns
 from pipeline.core.world import World
 
 StopReason = Literal["turn_end", "max_new_tokens", "context", "error"]
@@ -39,34 +39,35 @@ class Generation:
 
 
 @dataclass
-class EpisodeResult:
-    """One reachable-setting episode: the env's record plus the raw answers.
+class DecodedEpisode:
+    """One reachable-setting episode as the decoder played it: the env's transcript plus the model's raw
+    answers and the tokens they took (unscored: `pipeline.core.episodes` scores it).
 
-    `error` is set (and `record.outcome` is None) when the prompt or the growing history no longer fits
+    `error` is set (and `transcript.outcome` is None) when the prompt or the growing history no longer fits
     the model's context; the episode then stops where it was.
     """
 
     world_index: int
-    record: EpisodeRecord
+    transcript: EpisodeTranscript
     answers: list[str]
     n_tokens: int
     error: str | None = None
 
     @property
     def outcome(self) -> Outcome | None:
-        return self.record.outcome
+        return self.transcript.outcome
 
     @property
     def moves(self) -> list[str]:
-        return self.record.moves
+        return self.transcript.moves
 
     @property
     def n_moves(self) -> int:
-        return self.record.n_moves
+        return self.transcript.n_moves
 
     def to_dict(self) -> dict:
-        """Flat JSON-ready row: the env record's fields plus index, answers, token count and error."""
-        return {"world_index": self.world_index, **self.record.to_dict(), "answers": list(self.answers),
+        """Flat JSON-ready row: the env transcript's fields plus index, answers, token count and error."""
+        return {"world_index": self.world_index, **self.transcript.to_dict(), "answers": list(self.answers),
                 "n_tokens": self.n_tokens, "error": self.error}
 
 
@@ -142,11 +143,11 @@ def play_episodes(
     max_moves: int = 200,
     max_new_tokens: int = 4096,
     max_followup_tokens: int = 64,
-    on_episode: Callable[[EpisodeResult], None] | None = None,
+    on_episode: Callable[[DecodedEpisode], None] | None = None,
     choose_move: MoveChooser | None = None,
-    prompt: str = "paper",
+    prompt: str = DEFAULT_PROMPT,
     rules: str = "project",
-) -> list[EpisodeResult]:
+) -> list[DecodedEpisode]:
     """Play one episode per world, up to `batch_size` at a time; a finished episode's slot is refilled.
 
     Each turn every live episode's sequence is continued once; the answer is parsed into a move
@@ -162,14 +163,14 @@ def play_episodes(
     end_ids = turn_end_ids(tokenizer, fmt)
     after_stop = end_ids[len(stop_ids(tokenizer, fmt)):]  # what closes a turn the decoder stopped
     pending_worlds = iter(enumerate(worlds))
-    results: list[EpisodeResult | None] = [None] * len(worlds)
+    results: list[DecodedEpisode | None] = [None] * len(worlds)
     live: dict[int, _Episode] = {}
     requests: dict[int, Request] = {}
 
     def finish(episode: _Episode, error: str | None = None) -> None:
         del live[episode.index]
         requests.pop(episode.index, None)
-        result = EpisodeResult(episode.index, episode.env.record(), episode.answers, episode.n_tokens, error)
+        result = DecodedEpisode(episode.index, episode.env.transcript(), episode.answers, episode.n_tokens, error)
         results[episode.index] = result
         if on_episode is not None:
             on_episode(result)

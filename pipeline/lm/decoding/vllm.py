@@ -13,7 +13,7 @@ from typing import Callable, Sequence
 from pipeline.lm.chat import ChatFormat, TextTokenizer, encode_prompt, stop_ids
 from pipeline.lm.decoding.loop import (
     Continuation,
-    EpisodeResult,
+    DecodedEpisode,
     Generation,
     HistorySequences,
     MoveChooser,
@@ -21,6 +21,7 @@ from pipeline.lm.decoding.loop import (
     generation,
     play_episodes,
 )
+from pipeline.core.texts import DEFAULT_PROMPT
 from pipeline.core.world import World
 
 
@@ -81,11 +82,11 @@ class VLLMDecoder:
         worlds: Sequence[World],
         *,
         max_moves: int = 200,
-        on_episode: Callable[[EpisodeResult], None] | None = None,
+        on_episode: Callable[[DecodedEpisode], None] | None = None,
         choose_move: MoveChooser | None = None,
-        prompt: str = "paper",
+        prompt: str = DEFAULT_PROMPT,
         rules: str = "project",
-    ) -> list[EpisodeResult]:
+    ) -> list[DecodedEpisode]:
         """Play every world's episode, `batch_size` at a time (see `decode.play_episodes`)."""
         backend = HistorySequences(self._continue_prompts, self.stop_ids, self.max_length)
         return play_episodes(

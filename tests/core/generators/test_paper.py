@@ -1,4 +1,4 @@
-"""The paper's generator (pipeline.core.paper_generation): its shape distribution against an exact enumeration of
+"""The paper's generator (pipeline.core.generators.paper): its shape distribution against an exact enumeration of
 the paper's backtracking process, its wall/pit order against the released test file, determinism, the bound."""
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ import pytest
 from conftest import free_cells_form_a_tree
 from scipy.stats import chi2
 
-from pipeline.core.generation import GeneratorConfig, generate_worlds, sample_world, world_rng
-from pipeline.core.paper_generation import _search, paper_list_order, paper_order, paper_tree, sample_world_paper
+from pipeline.core.generators import GeneratorConfig, generate_worlds, sample_world, world_rng
+from pipeline.core.generators.paper import _search, paper_list_order, paper_order, paper_tree, sample_world_paper
 from pipeline.core.world import World
 
 # ---------------------------------------------------------------------------------------------------------

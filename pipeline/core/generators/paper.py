@@ -1,7 +1,7 @@
-"""World generation as the paper's released code does it (kaistAI/language_extrapolation,
-envs/gridworld/data/make_jsonl.py), seeded, bounded, standard library only.
+"""The paper's generator ("paper"): world generation as the paper's released code does it
+(kaistAI/language_extrapolation, envs/gridworld/data/make_jsonl.py), seeded, bounded, standard library only.
 
-Two things set it apart from `pipeline.core.generation.sample_world` (the "project" generator):
+Two things set it apart from the project's generator (`generators.project`):
 
 1. The tree search backtracks. The tree grows one cell at a time, each cell drawn uniformly from the
    cells touching exactly one tree cell, until the goal joins. When no cell can be added, the paper
@@ -35,13 +35,14 @@ from __future__ import annotations
 
 import random
 
-from pipeline.core.generation import GeneratorConfig, _neighbour_table
+from pipeline.core.generators.base import GeneratorConfig, neighbour_table, register
 from pipeline.core.world import Cell, World
 
 # Backtracks one tree search may make before it is abandoned (see the module docstring).
 MAX_BACKTRACKS = 100_000
 
 
+@register("paper")
 def sample_world_paper(
     rng: random.Random, cfg: GeneratorConfig, max_backtracks: int = MAX_BACKTRACKS
 ) -> World:
@@ -139,7 +140,7 @@ def _search(rng: random.Random, size_x: int, size_y: int, max_backtracks: int) -
     """`paper_tree`'s search, also returning how many times it backtracked (for the measurements)."""
     n = size_x * size_y
     goal = n - 1
-    neighbours = _neighbour_table(size_x, size_y)
+    neighbours = neighbour_table(size_x, size_y)
     in_tree = bytearray(n)
     touching = bytearray(n)
     front: list[int] = []
