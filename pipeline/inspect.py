@@ -2,7 +2,7 @@
 
 import sys
 
-from pipeline.report.inspect import main
+from pipeline.report.answers import main
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -2,8 +2,9 @@
 
 ``python -m pipeline.report`` (and :class:`ReportCallback` at the end of every multirun) reads the finished
 job runs of an experiment (layout in :mod:`pipeline.workflow.tracking`), their eval runs' ``episodes.jsonl`` and
-metric histories, and writes Markdown/CSV tables, PNG figures and an index ``report.md`` under ``out_dir``;
-the same files are logged as artifacts of a new run tagged ``cogmap.kind=report``.
+metric histories, and writes the tables of :mod:`pipeline.report.registry` (CSV and Markdown), PNG figures and
+an index ``report.md`` under ``out_dir``; the same files are logged as artifacts of a new run tagged
+``cogmap.kind=report``.
 
 Every rate is over episodes; an episode that could not run (``outcome == "error"``) counts as a failure.
 Several seeds in one cell: the rate is the mean of the per-seed rates, the interval the 95% Wilson interval
@@ -15,7 +16,6 @@ from __future__ import annotations
 import argparse
 import atexit
 import logging
-import os
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,10 +23,11 @@ from pathlib import Path
 import pandas as pd
 from hydra.experimental.callback import Callback
 
-from pipeline.core.variants import MAP_VARIANTS
+from pipeline.core.variants import MAP_VARIANTS, REFERENCE
 from pipeline.report.load import ReportError, StoreData, load_store, open_experiment
-from pipeline.report.markdown import SEED_FOOTNOTE, render_success, render_table3, write_tables
-from pipeline.report.tables import REFERENCE_VARIANT, SUCCESS_TABLES, Cells, compute_tables, rate_stats
+from pipeline.report.markdown import SEED_FOOTNOTE
+from pipeline.report.registry import SUCCESS_TABLES, TABLES, compute_tables, write_tables
+from pipeline.report.tables import Cells, rate_stats
 from pipeline.report.cli import add_store_arguments, store_of
 from pipeline.workflow.tracking import KIND_TAG, REPORT_KIND
 
@@ -45,13 +46,13 @@ class ReportResult:
 
 
 def _figure3_jobs(direction: str, variant: str) -> bool:
-    return variant in ("none", "cot") or (variant == REFERENCE_VARIANT and direction == "bwd")
+    return variant in ("none", "cot") or (variant == REFERENCE and direction == "bwd")
 
 
 def figure4_map(cells: Cells) -> tuple[str, str] | None:
     """The map shown in Figure 4: the paper's (BWD marking-deadend) if it ran, else our best map."""
-    if len(cells("reachable", "bwd", REFERENCE_VARIANT)):
-        return ("bwd", REFERENCE_VARIANT)
+    if len(cells("reachable", "bwd", REFERENCE)):
+        return ("bwd", REFERENCE)
     ranked = [(rate_stats(cells("reachable", d, v), True)["rate"], d, v)
               for d in cells.directions for v in MAP_VARIANTS
               if len(cells("reachable", d, v))]
@@ -84,7 +85,7 @@ def _clear(folder: Path) -> None:
 
 def render_index(data: StoreData, tracking_uri: str, tables: dict[str, pd.DataFrame],
                  out: Path, paths: list[Path]) -> str:
-    """``report.md``: what was read, the headline tables inline, and links to every file."""
+    """``report.md``: what was read, the headline tables inline, and links to every registered table and figure."""
     def link(p: Path) -> str:
         return p.relative_to(out).as_posix()
 
@@ -97,23 +98,16 @@ def render_index(data: StoreData, tracking_uri: str, tables: dict[str, pd.DataFr
     if data.notes:
         lines += ["Notes:", "", *(f"- {n}" for n in data.notes), ""]
     lines += ["## Tables", ""]
-    for key, (title, _) in SUCCESS_TABLES.items():
-        lines.append(f"- [{title}](tables/{key}.md) ([csv](tables/{key}.csv))")
-    lines += ["- [Table 3: cognitive map vs DFS](tables/table3.md) ([csv](tables/table3.csv))",
-              "- [Paired tests against marking-deadend](tables/mcnemar.md)"
-              " ([csv](tables/mcnemar.csv))",
-              "- [Optimal setting, graded](tables/graded_optimal.md)"
-              " ([csv](tables/graded_optimal.csv))",
-              "- [Reachable setting, outcomes](tables/outcomes_reachable.md)"
-              " ([csv](tables/outcomes_reachable.csv))",
-              "- [Where failing answers first go wrong](tables/map_errors.md) ([csv](tables/map_errors.csv)),"
-              " [by training step](tables/map_errors_by_step.md) ([csv](tables/map_errors_by_step.csv))",
-              "- [Job runs used](tables/jobs.csv)", ""]
-    for key, (title, _) in SUCCESS_TABLES.items():
-        section = render_success(title, tables[key]).split("\n## ")[1]  # the 'all' section
-        lines += [f"### {title} (all test worlds)", "", section.split("\n", 2)[2].strip(), ""]
-    lines += ["### Table 3 (reachable)", "", render_table3(tables["table3"]).split("\n\n")[-1].strip(),
-              "", SEED_FOOTNOTE, "", "## Figures", ""]
+    for table in TABLES.values():
+        csv = f"tables/{table.key}.csv"
+        lines.append(f"- [{table.title}](tables/{table.key}.md) ([csv]({csv}))" if table.render is not None
+                     else f"- [{table.title}]({csv})")
+    lines.append("")
+    for table in SUCCESS_TABLES:
+        section = table.markdown(tables[table.key]).split("\n## ")[1]  # the 'all' section
+        lines += [f"### {table.title} (all test worlds)", "", section.split("\n", 2)[2].strip(), ""]
+    table3_body = TABLES["table3"].markdown(tables["table3"]).split("\n\n")[-1].strip()
+    lines += ["### Table 3 (reachable)", "", table3_body, "", SEED_FOOTNOTE, "", "## Figures", ""]
     figures = [p for p in paths if p.suffix == ".png"]
     if not figures:
         lines += ["No figure: no job has episodes, checkpoint curves or training losses yet.", ""]

@@ -1,14 +1,14 @@
-"""The report's tables as Markdown (and CSV): cells with their intervals and the paper's number."""
+"""The report's tables as Markdown: cells with their intervals and the paper's number. Every renderer takes
+(title, note, long table), so a registry entry (:mod:`pipeline.report.registry`) names one."""
 
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import pandas as pd
 
 from pipeline.core.variants import PAPER_ROWS
-from pipeline.report.tables import MISSING, REACHABLE_OUTCOMES, SUCCESS_TABLES
+from pipeline.report.tables import MISSING
 
 SEED_FOOTNOTE = (
     "Cells: our success rate, its 95% Wilson interval in brackets, the paper's number (docs/spec.md §5) after "
@@ -50,9 +50,9 @@ def _column_name(mode: str, direction: str) -> str:
     return f"{mode.capitalize()} {direction.upper()}"
 
 
-def render_success(title: str, table: pd.DataFrame) -> str:
+def render_success(title: str, note: str, table: pd.DataFrame) -> str:
     """Tables 1/7/8 as Markdown: one section per subset, variants by (mode, direction)."""
-    parts = [f"# {title}", "", SEED_FOOTNOTE]
+    parts = [f"# {title}", "", note]
     columns = list(dict.fromkeys(zip(table["mode"], table["direction"])))
     for subset, block in table.groupby("subset", sort=False):
         rows = []
@@ -64,7 +64,7 @@ def render_success(title: str, table: pd.DataFrame) -> str:
     return "\n".join(parts) + "\n"
 
 
-def render_table3(table: pd.DataFrame) -> str:
+def render_table3(title: str, note: str, table: pd.DataFrame) -> str:
     """Table 3 as Markdown: rows by subset, plus moves over optimal length on successful episodes."""
     subsets = list(dict.fromkeys(table["subset"]))
     rows = []
@@ -72,10 +72,7 @@ def render_table3(table: pd.DataFrame) -> str:
         by_subset = {r["subset"]: r for _, r in block.iterrows()}
         rows.append([label, *(format_rate(by_subset[s]) for s in subsets),
                      _num(by_subset["all"]["moves_over_optimal"], 2)])
-    return "\n".join([
-        "# Table 3: reachable setting, cognitive map vs DFS exploration", "", SEED_FOOTNOTE,
-        "The last column is the mean of moves taken / optimal length over successful episodes.", "",
-        markdown_table(["", *subsets, "moves / optimal"], rows)]) + "\n"
+    return "\n".join([f"# {title}", "", note, "", markdown_table(["", *subsets, "moves / optimal"], rows)]) + "\n"
 
 
 def render_rows(title: str, note: str, table: pd.DataFrame, digits: dict[str, int]) -> str:
@@ -90,62 +87,3 @@ def render_rows(title: str, note: str, table: pd.DataFrame, digits: dict[str, in
     if table.empty:
         parts += ["", "No job for this table has run."]
     return "\n".join(parts) + "\n"
-
-
-MCNEMAR_NOTE = (
-    "Each variant against marking-deadend of the same direction and mode, on the test worlds both were "
-    "evaluated on (paired by seed and world index; with no seed in common, the lowest seed of each). "
-    "only_variant / only_reference: worlds solved by one and not the other. p_value: two-sided exact "
-    "McNemar test (binomial test of the discordant pairs at 1/2).")
-GRADED_NOTE = (
-    "Optimal setting, graded (docs/spec.md §4): the share of episodes whose plan parsed, stayed valid (never left "
-    "the grid or hit an obstacle), reached the goal, was optimal (success), and whose map was exact; "
-    "rates are means over seeds. first_error_*: quartiles, over wrong maps, of the first line (0-based, "
-    "in the whole answer) where the answer departs from the golden one.")
-MAP_ERRORS_NOTE = (
-    "Failing optimal-setting episodes by the first line where the answer departs from the golden one: a "
-    "section or step header, a state name (named maps), a neighbour's coordinate, its label (a move written "
-    "for 'cut', 'cut' for a move, or the wrong move), a Backtrack or Plan line, or 'end' (the answer ran on "
-    "past the golden one). n: episodes (all seeds); share: of the cell's failing episodes; the step columns "
-    "count the thought lines by BFS step; later_frontier_state: lines of a state that was not the first "
-    "one expanded in its step.")
-MAP_ERRORS_BY_STEP_NOTE = (
-    "The same classification for the checkpoints of jobs run with eval.curve=true (each checkpoint decoded on "
-    "the first eval.curve_worlds test worlds): n_episodes and success_rate of the checkpoint, then its failing "
-    "episodes by category.")
-OUTCOMES_NOTE = (
-    "Reachable setting: the share of each outcome (means over seeds); moves_over_optimal = mean of moves "
-    "taken / optimal length over successful episodes.")
-
-
-def write_tables(tables: dict[str, pd.DataFrame], out: Path) -> list[Path]:
-    """Each table as CSV (long form) and Markdown; returns the paths written."""
-    out.mkdir(parents=True, exist_ok=True)
-    rate_digits = {c: 3 for c in ("rate_variant", "rate_reference", "rate_parsed", "rate_valid",
-                                  "rate_reaches_goal", "rate_success", "rate_map_exact",
-                                  *(f"rate_{o}" for o in REACHABLE_OUTCOMES))}
-    rate_digits |= {"p_value": 4, "moves_over_optimal": 2, "first_error_q1": 1,
-                    "first_error_median": 1, "first_error_q3": 1}
-    markdown = {key: render_success(title, tables[key]) for key, (title, _) in SUCCESS_TABLES.items()}
-    markdown["table3"] = render_table3(tables["table3"])
-    markdown["mcnemar"] = render_rows("Paired tests against marking-deadend", MCNEMAR_NOTE,
-                                      tables["mcnemar"], rate_digits)
-    markdown["graded_optimal"] = render_rows("Optimal setting, graded", GRADED_NOTE,
-                                             tables["graded_optimal"], rate_digits)
-    markdown["outcomes_reachable"] = render_rows("Reachable setting, outcomes", OUTCOMES_NOTE,
-                                                 tables["outcomes_reachable"], rate_digits)
-    markdown["map_errors"] = render_rows("Optimal setting: where failing answers first go wrong",
-                                         MAP_ERRORS_NOTE, tables["map_errors"], {"share": 3})
-    markdown["map_errors_by_step"] = render_rows(
-        "Optimal setting: where failing answers first go wrong, by training step", MAP_ERRORS_BY_STEP_NOTE,
-        tables["map_errors_by_step"], {"share": 3, "success_rate": 3})
-    paths = []
-    for key, frame in tables.items():
-        csv = out / f"{key}.csv"
-        frame.to_csv(csv, index=False)
-        paths.append(csv)
-        if key in markdown:
-            md = out / f"{key}.md"
-            md.write_text(markdown[key], encoding="utf-8")
-            paths.append(md)
-    return paths

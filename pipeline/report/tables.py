@@ -1,5 +1,6 @@
-"""The report's tables, in long form: Tables 1, 3, 7, 8 (and ours) by subset, the paired tests, the graded
-optimal setting, where maps go wrong, the reachable outcomes, the jobs used.
+"""How the report's tables are computed, in long form: Tables 1, 3, 7, 8 (and ours) by subset, the paired
+tests, the graded optimal setting, where maps go wrong, the reachable outcomes, the jobs used. Which tables the
+report has, with their titles and rows, is declared in :mod:`pipeline.report.registry`.
 
 Every rate is over episodes; an episode that could not run (``outcome == "error"``) counts as a failure.
 Several seeds in one cell: the rate is the mean of the per-seed rates, the interval the 95% Wilson interval
@@ -14,22 +15,12 @@ from typing import Callable, Iterable
 import pandas as pd
 
 from pipeline.core.map_errors import STEP_BUCKETS
-from pipeline.core.variants import DIRECTIONS, MAP_VARIANTS, MODES, PAPER_ROWS, REFERENCE, SUCCESS_TABLE_ROWS, VARIANTS
-from pipeline.report.load import Job, StoreData, _index, _seed_key
+from pipeline.core.variants import DIRECTIONS, MAP_VARIANTS, MODES, PAPER_ROWS, REFERENCE, VARIANTS
+from pipeline.report.load import Job, _index, _seed_key
 from pipeline.report.paper import paper_success
 from pipeline.report.stats import mcnemar, seeded_rate
 
-REFERENCE_VARIANT = REFERENCE
 MISSING = "not run"
-
-# Tables 1, 7 and 8 (and ours): title and rows (variants; core.variants.SUCCESS_TABLE_ROWS) by mode x direction.
-_TITLES = {
-    "table1": "Table 1: success rate, baselines and the cognitive map",
-    "table7": "Table 7: success rate without ALL (only new neighbours listed)",
-    "table8": "Table 8: success rate without BACKTRACK",
-    "table_named": "Beyond the paper: each expanded state named (`From (x, y):` before its neighbours)",
-}
-SUCCESS_TABLES = {key: (_TITLES[key], rows) for key, rows in SUCCESS_TABLE_ROWS.items()}
 
 # Every table is also split by these subsets of the test worlds (name -> episode filter).
 SUBSETS: dict[str, Callable[[pd.DataFrame], pd.Series]] = {
@@ -111,13 +102,13 @@ def success_table(cells: Cells, variants: Iterable[str]) -> pd.DataFrame:
 
 def table3(cells: Cells) -> pd.DataFrame:
     """Table 3 (reachable): the paper's cognitive map (BWD marking-deadend), our best map, and DFS."""
-    entries = [("cognitive map (BWD MARKING deadend)", "bwd", REFERENCE_VARIANT)]
+    entries = [("cognitive map (BWD MARKING deadend)", "bwd", REFERENCE)]
     ranked = [(rate_stats(cells("reachable", d, v), True)["rate"], d, v)
               for d in cells.directions for v in MAP_VARIANTS
               if len(cells("reachable", d, v))]
     if ranked:
         _, d, v = max(ranked)
-        if (d, v) != ("bwd", REFERENCE_VARIANT):
+        if (d, v) != ("bwd", REFERENCE):
             entries.append((f"best cognitive map of ours ({d.upper()} {PAPER_ROWS[v]})", d, v))
     dfs_directions = [d for d in cells.directions if len(cells("reachable", d, "dfs"))]
     entries += [(f"DFS exploration ({d.upper()} run)", d, "dfs") for d in dfs_directions] or [
@@ -167,18 +158,17 @@ def mcnemar_table(cells: Cells) -> pd.DataFrame:
     for subset in SUBSETS:
         for mode in MODES:
             for direction in cells.directions:
-                if not len(cells(mode, direction, REFERENCE_VARIANT)):
+                if not len(cells(mode, direction, REFERENCE)):
                     continue
                 for variant in VARIANTS:
-                    if variant == REFERENCE_VARIANT or not len(cells(mode, direction, variant)):
+                    if variant == REFERENCE or not len(cells(mode, direction, variant)):
                         continue
-                    pairs, seeds = _paired(cells, mode, direction, variant, REFERENCE_VARIANT,
-                                           subset)
+                    pairs, seeds = _paired(cells, mode, direction, variant, REFERENCE, subset)
                     test = mcnemar(pairs["success_a"].tolist(), pairs["success_b"].tolist())
                     n = test.n_pairs
                     rows.append({
                         "subset": subset, "mode": mode, "direction": direction, "variant": variant,
-                        "reference": REFERENCE_VARIANT, "seeds": ",".join(map(str, seeds)),
+                        "reference": REFERENCE, "seeds": ",".join(map(str, seeds)),
                         "n_pairs": n,
                         "rate_variant": (test.both + test.only_a) / n if n else math.nan,
                         "rate_reference": (test.both + test.only_b) / n if n else math.nan,
@@ -290,17 +280,3 @@ def jobs_table(jobs: list[Job]) -> pd.DataFrame:
                          for j in jobs],
                         columns=["mode", "direction", "variant", "seed", "paper_row", "job_run_id",
                                  "eval_run_id", "finetune_run_id"])
-
-
-def compute_tables(data: StoreData) -> dict[str, pd.DataFrame]:
-    """Every table of the report, in long form (the CSV files)."""
-    cells = Cells(data.episodes)
-    tables = {key: success_table(cells, variants) for key, (_, variants) in SUCCESS_TABLES.items()}
-    tables["table3"] = table3(cells)
-    tables["mcnemar"] = mcnemar_table(cells)
-    tables["graded_optimal"] = graded_table(cells)
-    tables["map_errors"] = map_errors_table(cells)
-    tables["map_errors_by_step"] = map_errors_by_step_table(data.curve_episodes)
-    tables["outcomes_reachable"] = outcomes_table(cells)
-    tables["jobs"] = jobs_table(data.jobs)
-    return tables

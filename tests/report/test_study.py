@@ -1,12 +1,9 @@
-"""The lever study table (`python -m pipeline.report.study`) and the store arguments the report's commands share."""
+"""The lever study table (`python -m pipeline.report.study`)."""
 
 from __future__ import annotations
 
-import argparse
-
 import pytest
 
-from pipeline.report.cli import add_store_arguments, store_of
 from pipeline.report.load import ReportError
 from pipeline.report.study import Row, _flat, study_table
 
@@ -42,13 +39,3 @@ def test_a_job_without_validation_shows_a_dash_and_configs_flatten_to_dotted_key
     assert "(one recipe)" in line and "| - |" in line
     assert _flat({"model": {"positions": "nope", "sizes": [2, 4]}, "seed": 1}) == {
         "model.positions": "nope", "model.sizes": "[2, 4]", "seed": 1}
-
-
-def test_the_store_is_named_as_jobs_name_it(tmp_path):
-    parser = argparse.ArgumentParser()
-    add_store_arguments(parser)
-    uri, experiment = store_of(parser, parser.parse_args([f"tracking.root={tmp_path}", "tracking.experiment=x"]))
-    assert uri == f"sqlite:///{tmp_path.resolve()}/mlflow.db" and experiment == "x"
-    assert store_of(parser, parser.parse_args(["--tracking-uri", "sqlite:///a.db"]))[0] == "sqlite:///a.db"
-    with pytest.raises(SystemExit):
-        store_of(parser, parser.parse_args(["tracking.rot=/x"]))

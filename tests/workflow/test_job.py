@@ -66,7 +66,7 @@ def test_a_job_runs_its_steps_then_reuses_them(tmp_path):
 def test_the_finetuned_model_is_an_mlflow_model_and_inspect_shows_its_answers(tmp_path):
     import mlflow.transformers
 
-    from pipeline.report.inspect import inspect_run, main as inspect_main
+    from pipeline.report.answers import inspect_run, main as inspect_main
 
     cfg = _cfg(tmp_path, "variant=marking-deadend", "eval.n_worlds=2")
     run_job(cfg)
