@@ -1,14 +1,16 @@
 """THE table of what a job can be: directions, modes, the cognitive-map variants and the baselines, with the
 paper's row names, the tables they appear in, and the rules that tie them together.
 
-Everything else reads its lists from here: the config's choices, the texts, scoring, the report's rows and
-the figures' order. Adding a variant is one row in `VARIANT_ROWS` (plus its `conf/variant/` preset).
+Everything else reads its lists from here: the config's groups and presets (registered in Hydra's ConfigStore
+by `pipeline.workflow.config.register_configs`), the texts, scoring, the report's rows and the figures' order.
+Adding a variant is one row in `VARIANT_ROWS`; adding a map switch is one field of `MapSwitches` (plus what
+the texts write for it).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Mapping, NamedTuple
 
 DIRECTIONS: tuple[str, ...] = ("fwd", "bwd")   # BFS from the start or from the goal
 MODES: tuple[str, ...] = ("optimal", "reachable")   # single turn, whole plan | multi-turn, one move a turn
@@ -63,6 +65,8 @@ VARIANT_ROWS: tuple[Variant, ...] = (
     *_BASELINES,
 )
 BY_NAME: dict[str, Variant] = {v.name: v for v in VARIANT_ROWS}
+# Other names a preset answers to (`variant=marking`).
+ALIASES: dict[str, str] = {"marking": "marking-deadend", "nomarking": "no-marking"}
 
 # Derived views (the order is the table's: reports and figures list variants in it).
 VARIANTS: tuple[str, ...] = tuple(BY_NAME)
@@ -73,14 +77,7 @@ PAPER_VARIANTS: tuple[str, ...] = tuple(v.name for v in VARIANT_ROWS if v.in_pap
 PAPER_ROWS: dict[str, str] = {v.name: v.paper_row for v in VARIANT_ROWS}
 # The map the paper singles out (its Table 3 and Figure 4), and the one every paired test compares against.
 REFERENCE = "marking-deadend"
-
-# Which variants each success table of the report shows (rows in this order).
-SUCCESS_TABLE_ROWS: dict[str, tuple[str, ...]] = {
-    "table1": ("none", "cot", "marking-deadend", "no-marking"),
-    "table7": ("no-all-no-backtrack", "no-all"),
-    "table8": ("no-marking-no-backtrack", "no-backtrack"),
-    "table_named": ("marking-deadend", "marking-deadend" + NAMED_SUFFIX, "no-marking", "no-marking" + NAMED_SUFFIX),
-}
+SWITCHES: tuple[str, ...] = MapSwitches._fields
 
 
 class VariantError(ValueError):
@@ -113,19 +110,21 @@ def text_direction(direction: str, variant: str) -> str | None:
     return None if BY_NAME[variant].direction_free else direction
 
 
-def variant_for(baseline: str, all_moves: bool, marking: bool, backtrack: bool, named: bool) -> str:
-    """The variant the config's switches describe. ``baseline`` is ``cogmap`` or a baseline's name."""
+def variant_for(baseline: str, switches: Mapping[str, object]) -> str:
+    """The variant the config's switches describe (``switches``: a value for each of `SWITCHES`).
+    ``baseline`` is ``cogmap`` or a baseline's name."""
+    values = MapSwitches(**{name: bool(switches[name]) for name in SWITCHES})
     if baseline != "cogmap":
         check_choice("baseline", baseline, ("cogmap", *BASELINES))
-        if named:
+        if values.named:
             raise VariantError(f"named=on names the expanded states of a cognitive map; baseline={baseline} has "
                                "none. Allowed: named=off, or a map variant (baseline=cogmap)")
         return baseline
-    switches = MapSwitches(bool(all_moves), bool(marking), bool(backtrack), bool(named))
     for name, value in MAP_VARIANTS.items():
-        if value == switches:
+        if value == values:
             return name
     raise VariantError(
-        f"marking=on needs all_moves=on (got all_moves={all_moves}, marking={marking}): 'cut' labels exist only "
-        "where all four neighbours are listed. Allowed switch settings: "
-        + ", ".join(f"{n} (all_moves={a}, marking={m}, backtrack={b})" for n, (a, m, b, _) in PAPER_MAP_VARIANTS.items()))
+        f"marking=on needs all_moves=on (got all_moves={values.all_moves}, marking={values.marking}): 'cut' labels "
+        "exist only where all four neighbours are listed. Allowed switch settings: "
+        + ", ".join(f"{n} (" + ", ".join(f"{k}={v}" for k, v in s._asdict().items() if k != "named") + ")"
+                    for n, s in PAPER_MAP_VARIANTS.items()))

@@ -10,7 +10,7 @@ import shutil
 import sys
 import sysconfig
 from pathlib import Path
-from dataclasses import dataclass, field, fields, is_dataclass
+from dataclasses import dataclass, field, fields, is_dataclass, make_dataclass
 from enum import Enum
 from typing import Any, Optional
 
@@ -18,7 +18,8 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, OmegaConf
 
 from pipeline.core.checks import SettingError
-from pipeline.core.variants import BASELINES, DIRECTIONS, MODES, UndefinedCombination, VariantError, check, variant_for
+from pipeline.core.variants import (ALIASES, BASELINES, BY_NAME, DIRECTIONS, MODES, REFERENCE, SWITCHES, VARIANT_ROWS,
+                                    UndefinedCombination, Variant, VariantError, check, variant_for)
 from pipeline.lm.model_settings import ModelKind, ModelSettings
 from pipeline.lm.training.settings import CompileMode, TrainSettings
 from pipeline.workflow.data_build import DataSettings, repeated_worlds_error, world_files
@@ -41,16 +42,10 @@ class TrackingConfig:
 
 
 @dataclass
-class RunConfig:
-    """The job's whole config. Its sections are the settings the code itself takes (one schema each)."""
-
+class _JobConfig:
     direction: Direction = Direction.bwd
     mode: Mode = Mode.optimal
     baseline: Baseline = Baseline.cogmap
-    all_moves: bool = True
-    marking: bool = True
-    backtrack: bool = True
-    named: bool = False     # not in the paper: `From (x, y):` before each expanded state's neighbours
     seed: int = 0
     # torch threads for this job (null: torch's default). Two 1-thread jobs beat one 2-thread job on small models.
     threads: Optional[int] = None
@@ -65,9 +60,45 @@ class RunConfig:
     work_dir: str = MISSING
 
 
+# The job's whole config: the fields above and one boolean per map switch of the variants table (`SWITCHES`),
+# each defaulting to the reference variant's. Its sections are the settings the code itself takes.
+RunConfig = make_dataclass(
+    "RunConfig", [(name, bool, field(default=on)) for name, on in BY_NAME[REFERENCE].switches._asdict().items()],
+    bases=(_JobConfig,))
+
+_ON_OFF = {"on": True, "off": False}
+
+
+def _preset(row: Variant) -> dict:
+    """A variant's preset: the config-group choices that make it (a baseline keeps the reference's switches,
+    which its texts ignore, so a command-line switch still has a group to override)."""
+    switches = (row.switches or BY_NAME[REFERENCE].switches)._asdict()
+    choices = [{"/baseline": "cogmap" if row.is_map else row.name},
+               *({f"/{name}": "on" if on else "off"} for name, on in switches.items())]
+    if row.reachable_only:
+        choices.append({"override /mode": "reachable"})
+    return {"defaults": choices}
+
+
 def register_configs() -> None:
-    """Register the schema (so `defaults: [run_schema]` validates every composed config) and resolvers."""
-    ConfigStore.instance().store(name="run_schema", node=RunConfig)
+    """Register the schema (so `defaults: [run_schema]` validates every composed config), the config groups
+    and variant presets the variants table defines, and the resolvers.
+
+    Groups: ``direction``, ``mode``, ``baseline`` and one ``on``/``off`` group per map switch, each option
+    setting its key; ``variant``: one preset per row of the table (and its aliases) choosing those groups.
+    A preset's choices sit in its own defaults list, so a group given on the command line wins over them.
+    """
+    store = ConfigStore.instance()
+    store.store(name="run_schema", node=RunConfig)
+    groups = {"direction": {d: d for d in DIRECTIONS}, "mode": {m: m for m in MODES},
+              "baseline": {b: b for b in Baseline.__members__}, **{name: _ON_OFF for name in SWITCHES}}
+    for group, options in groups.items():
+        for option, value in options.items():
+            store.store(group=group, name=option, node={group: value}, package="_global_")
+    for row in VARIANT_ROWS:
+        store.store(group="variant", name=row.name, node=_preset(row), package="_global_")
+    for alias, name in ALIASES.items():
+        store.store(group="variant", name=alias, node={"defaults": [name]}, package="_global_")
     OmegaConf.register_new_resolver("tracking_uri", default_tracking_uri, replace=True)
 
 
@@ -94,8 +125,7 @@ class JobSettings:
 def variant_name(cfg: DictConfig) -> str:
     """The variant the switches describe (a map variant or a baseline); raises ConfigError if none."""
     try:
-        return variant_for(Baseline(cfg.baseline).value, cfg.all_moves, cfg.marking, cfg.backtrack,
-                           bool(cfg.get("named", False)))
+        return variant_for(Baseline(cfg.baseline).value, {name: cfg[name] for name in SWITCHES})
     except VariantError as error:
         raise ConfigError(str(error)) from None
 

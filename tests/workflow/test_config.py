@@ -3,10 +3,13 @@
 from pathlib import Path
 
 import pytest
+from hydra.core.config_store import ConfigStore
+from hydra.core.override_parser.overrides_parser import OverridesParser
+from hydra.core.override_parser.types import Glob
 from omegaconf import OmegaConf
 
 from pipeline.workflow.config import ConfigError, UndefinedCell, register_configs, validate, variant_name
-from pipeline.core.variants import PAPER_MAP_VARIANTS, PAPER_VARIANTS
+from pipeline.core.variants import ALIASES, PAPER_MAP_VARIANTS, PAPER_VARIANTS, SWITCHES, VARIANTS
 
 from conftest import ROOT, compose_job
 CONF, SWEEPS = ROOT / "conf", ROOT / "sweeps"
@@ -21,7 +24,16 @@ def _compose(overrides=(), name="config", sweeps=False, hydra_node=False):
 
 
 def _options(group: str) -> list[str]:
-    return sorted(p.stem for p in (CONF / group).glob("*.yaml"))
+    """A group's options: its files under conf/, or the presets generated from the variants table."""
+    files = [p.stem for p in (CONF / group).glob("*.yaml")]
+    return sorted(files or [name.removesuffix(".yaml") for name in ConfigStore.instance().list(group)])
+
+
+def _sweep_values(params, key: str) -> list[str]:
+    """A sweep parameter's values, a glob over a group's options expanded as Hydra's sweeper does."""
+    override = OverridesParser.create().parse_overrides([f"{key}={params[key]}"])[0]
+    value = override.value()
+    return value.filter(_options(key)) if isinstance(value, Glob) else list(override.sweep_string_iterator())
 
 
 def test_default_job_is_bwd_marking_deadend_optimal():
@@ -33,9 +45,27 @@ def test_default_job_is_bwd_marking_deadend_optimal():
 @pytest.mark.parametrize("group", ["direction", "mode", "baseline", "marking", "backtrack", "all_moves", "named",
                                    "variant", "model", "data", "train", "eval", "tracking"])
 def test_every_group_option_composes(group):
-    for option in _options(group):
-        cfg = _compose([f"{group}={option}"])
-        OmegaConf.to_container(cfg, resolve=True, throw_on_missing=False)
+    options = _options(group)
+    assert options
+    for option in options:
+        cfg = _compose([f"{group}={option}", "model.path=x"] if option == "hf" else [f"{group}={option}"])
+        if group in ("direction", "mode", "baseline"):
+            assert cfg[group].value == option
+        elif group in SWITCHES:
+            assert cfg[group] is (option == "on")
+        elif group == "variant":
+            name = ALIASES.get(option, option)
+            assert validate(_compose([f"variant={option}", f"mode={'reachable' if name == 'dfs' else 'optimal'}"])
+                            ).variant == name
+        else:
+            OmegaConf.to_container(cfg, resolve=True, throw_on_missing=False)
+
+
+def test_the_generated_groups_are_the_variants_table():
+    assert _options("variant") == sorted([*VARIANTS, *ALIASES])
+    for switch in SWITCHES:
+        assert _options(switch) == ["off", "on"]
+    assert not any((CONF / group).exists() for group in ("variant", "direction", "mode", "baseline", *SWITCHES))
 
 
 @pytest.mark.parametrize("variant", list(PAPER_MAP_VARIANTS) + ["none", "cot"])
@@ -130,7 +160,7 @@ def test_sweep_files_compose_and_define_the_whole_grid(sweep):
     cfg = _compose(name=sweep, sweeps=True, hydra_node=True)
     params = cfg.hydra.sweeper.params
     assert params.direction == "fwd,bwd" and params.mode == "optimal,reachable"
-    assert set(params.variant.split(",")) == set(PAPER_VARIANTS)
+    assert sorted(_sweep_values(params, "variant")) == sorted(PAPER_VARIANTS)
     assert cfg.skip_undefined is True
 
 
