@@ -8,10 +8,13 @@ conversations through `pipeline.lm.training.trainer.finetune`, with the default 
 
 - ``padded fp32``: the plain Trainer: random batches padded to the longest, an attention mask, fp32, eager.
 - ``packed fp32``: our length-grouped batches (right-padded, no mask), fp32, eager.
-- ``packed <precision>``: the same at the precision of ``--train`` (the CPU default trains with bf16 autocast,
-  which runs matmuls on the CPU's AMX/AVX512-BF16 units and keeps fp32 master weights), eager.
+- ``packed bf16``: the same with bf16 autocast forced (matmuls on the CPU's AMX/AVX512-BF16 units, fp32 master
+  weights), eager.
+- ``bf16 forced`` (the baseline when ``--train`` asks for bf16 and compiles): what ``--train`` sets with bf16
+  autocast whatever the CPU's matmul peaks say: the default before bf16 was chosen by them.
 - ``default``: exactly what ``--train`` sets, its ``torch_compile`` scope included (the CPU default:
-  ``regional``). Only when that scope is not ``none``.
+  ``regional``), at the precision the trainer chooses (`pipeline.lm.training.compile.use_bf16`: bf16 only
+  where its matmuls measure at least 0.8x fp32's). Only when that scope is not ``none``.
 - ``default, paper prompt``: the same on the same worlds with the paper's instruction turns, when ``--model``
   prompts with the task turn alone (``prompt: task``, the CPU default): tokens/s barely move, conversations/s
   is what the switch buys.
@@ -38,6 +41,7 @@ import os
 import statistics
 import tempfile
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import torch
@@ -49,9 +53,11 @@ from pipeline.lm.chat import WORD_LEVEL_FORMAT, encode_conversation
 from pipeline.lm.model_settings import ModelSettings
 from pipeline.workflow.data_build import DataSettings
 from pipeline.lm.training.settings import TrainSettings
+from pipeline.lm.training import trainer as trainer_module
+from pipeline.lm.training.compile import matmul_peak, use_bf16
 from pipeline.lm.training.trainer import finetune
-from pipeline.core.generation import generate_worlds
-from pipeline.lm.models import build_scratch_model
+from pipeline.core.generators import generate_worlds
+from pipeline.lm.models import make_model
 from flops import count_parameters, training_flops
 from pipeline.core.texts import conversation
 from pipeline.lm.tokenizer import build_word_tokenizer
@@ -63,29 +69,24 @@ ROOT = Path(__file__).resolve().parents[1]
 DEVICE = "cuda" if torch.cuda.is_available() else "cpu"
 
 
-def matmul_peak(threads: int, dtype: torch.dtype, size: int | None = None, seconds: float = 2.0) -> float:
-    """Best GFLOP/s of square ``dtype`` matmuls over a few timed rounds (CPU: on ``threads`` threads; GPU:
-    8192^3 products, synchronised before each clock read)."""
-    torch.set_num_threads(threads)
-    size = size or (8192 if DEVICE == "cuda" else 1024)
-    a, b = (torch.randn(size, size, dtype=dtype, device=DEVICE) for _ in range(2))
-    sync = torch.cuda.synchronize if DEVICE == "cuda" else (lambda: None)
-    for _ in range(3):
-        a @ b
-    sync()
-    best = 0.0
-    for _ in range(5):
-        n, start = 0, time.perf_counter()
-        while time.perf_counter() - start < seconds / 5:
-            torch.matmul(a, b)
-            n += 1
-            sync()
-        best = max(best, 2 * size**3 * n / (time.perf_counter() - start) / 1e9)
-    return best
+@contextmanager
+def precision_as_asked(forced: bool):
+    """Within: the trainer takes ``bf16`` as asked (the default before the matmul peaks chose), if ``forced``."""
+    if not forced:
+        yield
+        return
+    saved = trainer_module.use_bf16
+    trainer_module.use_bf16 = lambda requested: requested
+    try:
+        yield
+    finally:
+        trainer_module.use_bf16 = saved
 
 
 def peaks(threads: int) -> dict[str, float]:
-    return {"fp32": matmul_peak(threads, torch.float32), "bf16": matmul_peak(threads, torch.bfloat16)}
+    torch.set_num_threads(threads)
+    return {kind: matmul_peak(dtype, device=DEVICE, seconds=2.0)
+            for kind, dtype in (("fp32", torch.float32), ("bf16", torch.bfloat16))}
 
 
 def device_line(threads: int) -> str:
@@ -145,7 +146,7 @@ def main() -> None:
     parser.add_argument("--model", default=str(ROOT / "conf" / "model" / "tiny.yaml"), help="a scratch model yaml")
     parser.add_argument("--train", default=str(ROOT / "conf" / "train" / "cpu.yaml"), help="a train yaml")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--only", choices=("padded-fp32", "packed-fp32", "packed-precision", "default",
+    parser.add_argument("--only", choices=("padded-fp32", "packed-fp32", "packed-bf16", "forced", "default",
                                            "default, paper prompt"),
                         action="append", help="run only these (repeatable)")
     args = parser.parse_args()
@@ -162,14 +163,9 @@ def main() -> None:
     conversations = sets[prompt]
     tokenizer = build_word_tokenizer(t["value"] for c in [*sets.get("paper", []), *conversations] for t in c)
     lengths = [len(encode_conversation(tokenizer, WORD_LEVEL_FORMAT, c)[0]) for c in conversations]
-    model_kwargs = dict(hidden_size=model_cfg.hidden_size, num_layers=model_cfg.num_layers,
-                        num_heads=model_cfg.num_heads, intermediate_size=model_cfg.intermediate_size,
-                        attn_implementation=model_cfg.attn_implementation,
-                        max_length=max(len(encode_conversation(tokenizer, WORD_LEVEL_FORMAT, c)[0])
-                                       for texts in sets.values() for c in texts), seed=args.seed)
-    probe = build_scratch_model(tokenizer, **model_kwargs)
+    probe = make_model(model_cfg, tokenizer, seed=args.seed)
     flops_per_real_token = training_flops(probe, lengths) / sum(lengths)
-    precision = "bf16" if train_cfg.bf16 else "fp32"
+    precision = "bf16" if use_bf16(train_cfg.bf16) else "fp32"   # what the trainer will choose on this machine
     scope = train_cfg.torch_compile.value
     print(device_line(args.threads))
     print(f"data ({args.data}, prompt {prompt}): {len(conversations)} conversations, tokens min {min(lengths)} "
@@ -177,7 +173,7 @@ def main() -> None:
           f"{len(tokenizer)}")
     print(f"model ({Path(args.model).name}): {count_parameters(probe) / 1e6:.3f}M parameters, hidden "
           f"{model_cfg.hidden_size} x {model_cfg.num_layers} layers, {model_cfg.num_heads} heads of "
-          f"{model_cfg.hidden_size // model_cfg.num_heads}, attention {model_kwargs['attn_implementation']}; "
+          f"{model_cfg.hidden_size // model_cfg.num_heads}, attention {model_cfg.attn_implementation}; "
           f"{flops_per_real_token / 1e6:.2f} MFLOP per real token (training)")
     print(f"train ({Path(args.train).name}): batch {train_cfg.per_device_batch_size}, lr {train_cfg.learning_rate}, "
           f"precision {precision}, torch_compile {scope}; {args.steps} steps a run, steady state from step "
@@ -185,15 +181,17 @@ def main() -> None:
 
     measured = [peaks(args.threads)]
     print("matmul peak before: " + ", ".join(f"{k} {v:.1f} GFLOP/s" for k, v in measured[0].items()))
-    # name: (packing, bf16, torch_compile, prompt)
+    # name: (packing, bf16: False, True (as the trainer chooses) or "forced", torch_compile, prompt)
     runs = {"padded-fp32": (False, False, "none", prompt), "packed-fp32": (True, False, "none", prompt),
-            f"packed-{precision}": (True, bool(train_cfg.bf16), "none", prompt)}
+            "packed-bf16": (True, "forced", "none", prompt)}
     default = f"default ({precision}, {scope} compile)" if scope != "none" else f"packed-{precision}"
     if scope != "none":
+        if train_cfg.bf16:
+            runs[f"bf16 forced, {scope} compile"] = (True, "forced", scope, prompt)
         runs[default] = (True, bool(train_cfg.bf16), scope, prompt)
     if "paper" in sets and prompt != "paper":
         runs["default, paper prompt"] = (*runs[default][:3], "paper")
-    selected = {"packed-precision": f"packed-{precision}", "default": default}
+    selected = {"default": default, "forced": f"bf16 forced, {scope} compile"}
     wanted = {selected.get(name, name) for name in args.only or runs}
     rates: dict[str, tuple[float, float]] = {}  # name: (overall, steady) real tokens/s
     per_token: dict[str, float] = {}  # name: useful training FLOPs per real token of its conversations
@@ -206,14 +204,14 @@ def main() -> None:
         mean_tokens = statistics.fmean(run_lengths)
         settings = TrainSettings(
             max_steps=args.steps, per_device_batch_size=train_cfg.per_device_batch_size,
-            learning_rate=train_cfg.learning_rate, packing=packing, bf16=bf16,
+            learning_rate=train_cfg.learning_rate, packing=packing, bf16=bool(bf16),
             pad_to_multiple_of=train_cfg.pad_to_multiple_of,
             report_to=(), logging_steps=args.steps, save_steps=10 * args.steps, torch_threads=args.threads,
             torch_compile=compile_scope,
         )
         clock = StepClock()
-        with tempfile.TemporaryDirectory() as out:
-            model = build_scratch_model(tokenizer, **model_kwargs)
+        with tempfile.TemporaryDirectory() as out, precision_as_asked(bf16 == "forced"):
+            model = make_model(model_cfg, tokenizer, seed=args.seed)
             result = finetune(model, tokenizer, WORD_LEVEL_FORMAT, texts, settings, out, seed=args.seed,
                               max_length=max(run_lengths), callbacks=[clock])
         steady = clock.steady(args.skip)
@@ -230,11 +228,13 @@ def main() -> None:
     peak = {k: max(m[k] for m in measured) for k in measured[0]}
     print("matmul peak after: " + ", ".join(f"{k} {v:.1f} GFLOP/s" for k, v in measured[1].items())
           + "; using the best: " + ", ".join(f"{k} {v:.1f}" for k, v in peak.items()))
-    if "padded-fp32" in rates:
-        base_all, base_steady = rates["padded-fp32"]
+    for base in ("padded-fp32", selected["forced"]):
+        if base not in rates:
+            continue
+        base_all, base_steady = rates[base]
         for name, (overall, steady) in rates.items():
-            if name != "padded-fp32":
-                print(f"{name} / padded-fp32 tokens/s: {overall / base_all:.2f}x over all steps, "
+            if name != base:
+                print(f"{name} / {base} tokens/s: {overall / base_all:.2f}x over all steps, "
                       f"{steady / base_steady:.2f}x in steady state")
     for name, (overall, steady) in rates.items():
         shares = [f"{100 * rate * per_token[name] / 1e9 / peak[kind]:.0f}%" for rate in (steady, overall)

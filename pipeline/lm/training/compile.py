@@ -1,11 +1,12 @@
-"""How the trainer uses the hardware: bf16 only where the CPU multiplies bf16 in hardware, and torch.compile
-scoped as `TrainSettings.torch_compile` says (regional compilation in place; accelerate's compile
-environment kept out)."""
+"""How the trainer uses the hardware: bf16 only where the CPU multiplies bf16 in hardware and does so faster than
+fp32 (measured), and torch.compile scoped as `TrainSettings.torch_compile` says (regional compilation in place;
+accelerate's compile environment kept out)."""
 
 from __future__ import annotations
 
 import logging
 import os
+import time
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -30,13 +31,51 @@ def cpu_has_bf16(cpuinfo: str | None = None) -> bool:
     return bool({"avx512_bf16", "amx_bf16"} & set(flags))
 
 
+# On a CPU, bf16 autocast is chosen only where its matmuls are not clearly slower than fp32's: some CPUs with
+# AVX512-BF16 multiply bf16 at half their fp32 rate (README, Speed). The margin keeps the choice stable under
+# timing noise, so one machine always makes the same one.
+BF16_MIN_SPEEDUP = 0.8
+
+
+def matmul_peak(dtype: torch.dtype, *, device: str = "cpu", size: int | None = None, seconds: float = 0.5) -> float:
+    """Best GFLOP/s of square ``dtype`` matmuls over five timed rounds on ``device`` (CPU: torch's current
+    threads, 1024^3 products; GPU: 8192^3, synchronised before each clock read)."""
+    size = size or (8192 if device == "cuda" else 1024)
+    a, b = (torch.randn(size, size, dtype=dtype, device=device) for _ in range(2))
+    sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
+    for _ in range(3):
+        a @ b
+    sync()
+    best = 0.0
+    for _ in range(5):
+        n, start = 0, time.perf_counter()
+        while time.perf_counter() - start < seconds / 5:
+            torch.matmul(a, b)
+            n += 1
+            sync()
+        best = max(best, 2 * size**3 * n / (time.perf_counter() - start) / 1e9)
+    return best
+
+
 def use_bf16(requested: bool) -> bool:
-    """bf16 as asked, except on a CPU without bf16 hardware, which trains in fp32 instead (with a warning)."""
-    if requested and not torch.cuda.is_available() and not cpu_has_bf16():
+    """bf16 as asked on a GPU. On a CPU, bf16 autocast only where it pays: a CPU without bf16 hardware, or one
+    whose bf16 matmuls measure below `BF16_MIN_SPEEDUP` times its fp32 ones, trains in fp32 (with a warning
+    naming the reason)."""
+    if not requested or torch.cuda.is_available():
+        return requested
+    if not cpu_has_bf16():
         log.warning("train.bf16=true but this CPU has no bf16 matmul hardware (no avx512_bf16 or amx_bf16 flag): "
                     "training in fp32 instead")
         return False
-    return requested
+    fp32, bf16 = matmul_peak(torch.float32), matmul_peak(torch.bfloat16)
+    if bf16 < BF16_MIN_SPEEDUP * fp32:
+        log.warning("train.bf16=true but this CPU multiplies bf16 slower than fp32 (matmul peaks on %d threads: bf16 "
+                    "%.0f, fp32 %.0f GFLOP/s): training in fp32 instead", torch.get_num_threads(), bf16, fp32)
+        return False
+    log.info("bf16 autocast: matmul peaks on %d threads: bf16 %.0f, fp32 %.0f GFLOP/s", torch.get_num_threads(),
+             bf16, fp32)
+    return True
+
 
 @contextmanager
 def dynamo_environment():

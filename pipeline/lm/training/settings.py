@@ -37,7 +37,9 @@ class TrainSettings:
     rounds each batch's width up: a few distinct shapes instead of one per length, so the kernels oneDNN
     builds per shape (bf16 on a CPU) are built a few times, not hundreds. ``packing`` groups batches by
     length and sends no attention mask (see `pipeline.lm.training.batches`). ``torch_compile``: see
-    `CompileMode`; on a CPU, compiling needs a C++ compiler and the Python headers.
+    `CompileMode`; on a CPU, compiling needs a C++ compiler and the Python headers. ``bf16``: bf16 mixed
+    precision on a GPU; on a CPU, autocast only where it pays (`pipeline.lm.training.compile.use_bf16` measures
+    the bf16 and fp32 matmul peaks), fp32 elsewhere.
     ``accelerate_config``: train under ``accelerate launch --config_file <it>`` (distributed, e.g. FSDP) in a
     subprocess. ``log_checkpoints``: the finetune step also logs every checkpoint's weights (the eval
     step's adaptation curve evaluates them). ``long_conversations`` (`LONG_CONVERSATIONS`): a conversation
