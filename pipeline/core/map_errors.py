@@ -65,7 +65,8 @@ def _levels(world: World, root: Cell) -> dict[Cell, int]:
     return levels
 
 
-def _neighbour_kind(world: World, cell: Cell | None, root: Cell, bfs_step: int) -> str | None:
+def _neighbour_kind(world: World, cell: Cell | None, levels: dict[Cell, int], bfs_step: int) -> str | None:
+    """What a neighbour written at BFS step ``bfs_step`` is (NEIGHBOURS); ``levels``: `_levels` from the root."""
     if cell is None:
         return None
     if not world.in_grid(cell):
@@ -75,7 +76,7 @@ def _neighbour_kind(world: World, cell: Cell | None, root: Cell, bfs_step: int) 
     if cell in world.pits:
         return "pit"
     # Step k expands the states of level k-1: their free neighbours are new (level k) or visited (k-2).
-    return "free" if _levels(world, root).get(cell) == bfs_step else "visited"
+    return "free" if levels.get(cell) == bfs_step else "visited"
 
 
 def _label_error(expected: str, got: str | None) -> str | None:
@@ -127,10 +128,31 @@ def first_wrong_line(world: World, direction: str, variant: str, text: object, s
     neighbour = label_error = None
     if kind == "label":
         root = world.start if direction == "fwd" else world.goal
-        neighbour = _neighbour_kind(world, _cell(golden[index - 1]), root, bfs_step or 0)
+        neighbour = _neighbour_kind(world, _cell(golden[index - 1]), _levels(world, root), bfs_step or 0)
         label_error = _label_error(expected, got)
     return ErrorSite(index, section, kind, bfs_step if section == "thought" else None, state, neighbour,
                      expected, got, label_error)
+
+
+def label_kinds(world: World, direction: str, variant: str, steps: str = "numbered") -> list[tuple[int, str]]:
+    """Every label line of the golden optimal-setting thought as (0-based line index, what its neighbour is:
+    one of NEIGHBOURS): what a teacher-forced probe grades the model's labels by."""
+    golden = golden_answer(world, direction, variant, "optimal", steps=steps).split("\n")
+    levels = _levels(world, world.start if direction == "fwd" else world.goal)
+    found, section, bfs_step, in_step = [], "", 0, 0
+    for index, line in enumerate(golden):
+        if line in _HEADERS:
+            section = _HEADERS[line]
+        elif section != "thought" or line.startswith("From "):
+            continue
+        elif is_step_header(line):
+            bfs_step, in_step = bfs_step + 1, 0
+        else:
+            in_step += 1
+            kind = _neighbour_kind(world, _cell(golden[index - 1]), levels, bfs_step) if in_step % 2 == 0 else None
+            if kind is not None:
+                found.append((index, kind))
+    return found
 
 
 # Buckets of the BFS step a wrong thought line is in (ErrorSite.step).

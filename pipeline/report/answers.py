@@ -19,7 +19,7 @@ from pipeline.workflow.data_build import SUMMARY, TEST_WORLDS
 from pipeline.core.environment import GridEnv
 from pipeline.core.scoring import _as_text, first_difference
 from pipeline.core.texts import golden_answer, first_human_text
-from pipeline.core.variants import VARIANTS
+from pipeline.core.variants import MAP_VARIANTS, VARIANTS
 from pipeline.report.cli import add_store_arguments, store_of
 from pipeline.workflow.tracking import EPISODES_ARTIFACT, JOB_KIND, KIND_TAG, step_run_tag
 from pipeline.core.world import World, load_worlds
@@ -139,17 +139,75 @@ def inspect_run(tracking_uri: str, run_id: str, world: int | None = None, failed
                                 for r in chosen)]) + "\n"
 
 
+def probe_labels(tracking_uri: str, run_id: str, limit: int | None = None) -> str:
+    """The text of ``python -m pipeline.inspect RUN_ID --labels``: the job's model, fed each test world's golden
+    map, graded on every label line (`pipeline.lm.probe`); accuracy by what the neighbour is, inside the
+    training sizes and beyond them."""
+    from mlflow.tracking import MlflowClient
+
+    from pipeline.core.map_errors import NEIGHBOURS, label_kinds
+    from pipeline.core.texts import golden_answer, prompt_turns
+    from pipeline.lm.models import load_chat_format, load_model, load_tokenizer
+    from pipeline.lm.probe import labels_predicted
+    from pipeline.report.stats import wilson_interval
+
+    client = MlflowClient(tracking_uri)
+    job, evaluation = _runs(client, run_id)
+    tags = job.data.tags
+    variant = tags.get("variant", "")
+    if variant not in VARIANTS or not MAP_VARIANTS.get(variant):
+        raise InspectError(f"job {job.info.run_id} has variant {variant!r}: --labels grades a cognitive map's labels")
+    with tempfile.TemporaryDirectory() as scratch:
+        data_id = tags[step_run_tag("data-build")]
+        worlds = load_worlds(client.download_artifacts(data_id, TEST_WORLDS, scratch))
+        spec = json.loads(Path(client.download_artifacts(data_id, SUMMARY, scratch)).read_text()).get("text_spec") or {}
+        path = client.download_artifacts(evaluation.info.run_id, EPISODES_ARTIFACT, scratch)
+        records = [json.loads(line) for line in Path(path).read_text().splitlines() if line.strip()]
+        model_dir = client.download_artifacts(tags[step_run_tag("finetune")], "model", scratch)
+        model, tokenizer = load_model(model_dir).eval(), load_tokenizer(model_dir)
+        fmt = load_chat_format(model_dir)
+    direction, steps = spec.get("direction") or tags.get("direction", "fwd"), spec.get("step_headers") or "numbered"
+    counts: dict[tuple[bool, str], list[int]] = {}
+    for record in records[:limit]:
+        world = worlds[record["world_index"]]
+        kinds = label_kinds(world, direction, variant, steps)
+        answer = golden_answer(world, direction, variant, "optimal", steps=steps)
+        graded = labels_predicted(model, tokenizer, fmt, prompt_turns(world, spec.get("prompt", "paper")), answer,
+                                  [line for line, _ in kinds])
+        for (_, kind), ok in zip(kinds, graded):
+            tally = counts.setdefault((record["interpolated"], kind), [0, 0])
+            tally[0], tally[1] = tally[0] + ok, tally[1] + 1
+    rows = [f"job {job.info.run_id} · {direction} {variant} · {len(records[:limit])} test worlds, each fed its "
+            "golden map: labels predicted (greedy, every token of the line), 95% Wilson interval",
+            f"{'neighbour':<10} {'inside the training sizes':<34} beyond them"]
+    for kind in NEIGHBOURS:
+        cells = []
+        for inside in (True, False):
+            ok, n = counts.get((inside, kind), (0, 0))
+            low, high = wilson_interval(ok, n) if n else (0.0, 0.0)
+            cells.append(f"{ok / n:.3f} [{low:.3f}, {high:.3f}] ({ok}/{n})" if n else "-")
+        rows.append(f"{kind:<10} {cells[0]:<34} {cells[1]}")
+    return "\n".join(rows) + "\n"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m pipeline.inspect", description=__doc__.split("\n")[0])
     parser.add_argument("run_id", help="a job run id (printed by each job) or its eval run id")
     parser.add_argument("--world", type=int, help="the test world's index (default: the first few)")
     parser.add_argument("--failed", action="store_true", help="only episodes that failed")
-    parser.add_argument("--limit", type=int, default=3, help="how many episodes without --world (default 3)")
+    parser.add_argument("--limit", type=int, help="how many episodes without --world (default 3; with --labels: "
+                                                   "how many test worlds, default all)")
+    parser.add_argument("--labels", action="store_true",
+                        help="grade the model's labels on every test world's golden map (a teacher-forced probe)")
     add_store_arguments(parser)
     args = parser.parse_intermixed_args(argv)  # tracking.root=DIR may follow the options
     tracking_uri, _ = store_of(parser, args)
     try:
-        print(inspect_run(tracking_uri, args.run_id, args.world, args.failed, args.limit), end="")
+        if args.labels:
+            print(probe_labels(tracking_uri, args.run_id, args.limit), end="")
+        else:
+            limit = 3 if args.limit is None else args.limit
+            print(inspect_run(tracking_uri, args.run_id, args.world, args.failed, limit), end="")
     except InspectError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2

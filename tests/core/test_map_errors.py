@@ -6,7 +6,9 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from pipeline import World
-from pipeline.core.map_errors import LINE_KINDS, NEIGHBOURS, STEP_BUCKETS, category, first_wrong_line, step_bucket
+from pipeline.core.map_errors import (
+    LINE_KINDS, NEIGHBOURS, STEP_BUCKETS, category, first_wrong_line, label_kinds, step_bucket,
+)
 from pipeline.core.texts import golden_answer
 
 # 3 x 3, start (0, 0), goal (2, 2); wall (1, 1), pit (0, 2): the path goes right along y = 0, then up.
@@ -122,3 +124,21 @@ def test_plain_step_headers_count_steps_and_score_like_numbered_ones():
     numbered = _golden("marking-deadend")
     assert first_wrong_line(WORLD, "bwd", "marking-deadend", "\n".join(golden)).line == "step header"
     assert numbered != golden
+
+
+@pytest.mark.parametrize("variant", ["marking-deadend", "no-all", "marking-deadend-named"])
+def test_label_kinds_are_every_label_line_and_agree_with_the_first_wrong_line(variant):
+    golden = _golden(variant)
+    kinds = label_kinds(WORLD, "bwd", variant)
+    if variant == "marking-deadend":
+        assert kinds[:4] == [(3, "outside"), (5, "free"), (7, "free"), (9, "outside")]
+        # With MARKING every neighbour but a new free cell is cut.
+        assert all((golden[line] == "cut") == (kind != "free") for line, kind in kinds)
+    assert all(golden[line] in ("cut", "up", "down", "left", "right") for line, _ in kinds)
+    # Without ALL only the new neighbours are listed, all free; with it, walls too.
+    seen = {kind for _, kind in kinds}
+    assert seen == {"free"} if variant == "no-all" else {"free", "wall", "pit", "outside"} <= seen <= set(NEIGHBOURS)
+    for line, kind in kinds:
+        wrong = "cut" if golden[line] != "cut" else "up"
+        site = first_wrong_line(WORLD, "bwd", variant, "\n".join(golden[:line] + [wrong] + golden[line + 1:]))
+        assert (site.index, site.line, site.neighbour) == (line, "label", kind)
