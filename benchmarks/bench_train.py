@@ -8,13 +8,12 @@ conversations through `pipeline.lm.training.trainer.finetune`, with the default 
 
 - ``padded fp32``: the plain Trainer: random batches padded to the longest, an attention mask, fp32, eager.
 - ``packed fp32``: our length-grouped batches (right-padded, no mask), fp32, eager.
-- ``packed bf16``: the same with bf16 autocast forced (matmuls on the CPU's AMX/AVX512-BF16 units, fp32 master
-  weights), eager.
-- ``bf16 forced`` (the baseline when ``--train`` asks for bf16 and compiles): what ``--train`` sets with bf16
-  autocast whatever the CPU's matmul peaks say: the default before bf16 was chosen by them.
+- ``packed bf16``: the same with bf16 autocast (matmuls on the CPU's AMX/AVX512-BF16 units, fp32 master
+  weights; fp32 on a CPU without them), eager.
 - ``default``: exactly what ``--train`` sets, its ``torch_compile`` scope included (the CPU default:
-  ``regional``), at the precision the trainer chooses (`pipeline.lm.training.compile.use_bf16`: bf16 only
-  where its matmuls measure at least 0.8x fp32's). Only when that scope is not ``none``.
+  ``regional``). Only when that scope is not ``none``.
+- ``default, bf16 when faster``: the same with ``bf16_when_faster`` (bf16 only where its matmuls measure at
+  least 0.8x fp32's), when that picks another precision on this machine.
 - ``default, paper prompt``: the same on the same worlds with the paper's instruction turns, when ``--model``
   prompts with the task turn alone (``prompt: task``, the CPU default): tokens/s barely move, conversations/s
   is what the switch buys.
@@ -41,7 +40,6 @@ import os
 import statistics
 import tempfile
 import time
-from contextlib import contextmanager
 from pathlib import Path
 
 import torch
@@ -53,7 +51,6 @@ from pipeline.lm.chat import WORD_LEVEL_FORMAT, encode_conversation
 from pipeline.lm.model_settings import ModelSettings
 from pipeline.workflow.data_build import DataSettings
 from pipeline.lm.training.settings import TrainSettings
-from pipeline.lm.training import trainer as trainer_module
 from pipeline.lm.training.compile import matmul_peak, use_bf16
 from pipeline.lm.training.trainer import finetune
 from pipeline.core.generators import generate_worlds
@@ -67,20 +64,6 @@ ROOT = Path(__file__).resolve().parents[1]
 
 # Training runs where the Trainer puts it: the GPU when there is one. Peaks are measured on that device.
 DEVICE = "cuda" if torch.cuda.is_available() else "cpu"
-
-
-@contextmanager
-def precision_as_asked(forced: bool):
-    """Within: the trainer takes ``bf16`` as asked (the default before the matmul peaks chose), if ``forced``."""
-    if not forced:
-        yield
-        return
-    saved = trainer_module.use_bf16
-    trainer_module.use_bf16 = lambda requested: requested
-    try:
-        yield
-    finally:
-        trainer_module.use_bf16 = saved
 
 
 def peaks(threads: int) -> dict[str, float]:
@@ -146,7 +129,7 @@ def main() -> None:
     parser.add_argument("--model", default=str(ROOT / "conf" / "model" / "tiny.yaml"), help="a scratch model yaml")
     parser.add_argument("--train", default=str(ROOT / "conf" / "train" / "cpu.yaml"), help="a train yaml")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--only", choices=("padded-fp32", "packed-fp32", "packed-bf16", "forced", "default",
+    parser.add_argument("--only", choices=("padded-fp32", "packed-fp32", "packed-bf16", "default", "when-faster",
                                            "default, paper prompt"),
                         action="append", help="run only these (repeatable)")
     args = parser.parse_args()
@@ -165,7 +148,9 @@ def main() -> None:
     lengths = [len(encode_conversation(tokenizer, WORD_LEVEL_FORMAT, c)[0]) for c in conversations]
     probe = make_model(model_cfg, tokenizer, seed=args.seed)
     flops_per_real_token = training_flops(probe, lengths) / sum(lengths)
-    precision = "bf16" if use_bf16(train_cfg.bf16) else "fp32"   # what the trainer will choose on this machine
+    # What the trainer will choose on this machine, as --train asks and with bf16_when_faster.
+    precision = "bf16" if use_bf16(train_cfg.bf16, train_cfg.bf16_when_faster) else "fp32"
+    faster = "bf16" if use_bf16(train_cfg.bf16, True) else "fp32"
     scope = train_cfg.torch_compile.value
     print(device_line(args.threads))
     print(f"data ({args.data}, prompt {prompt}): {len(conversations)} conversations, tokens min {min(lengths)} "
@@ -181,21 +166,22 @@ def main() -> None:
 
     measured = [peaks(args.threads)]
     print("matmul peak before: " + ", ".join(f"{k} {v:.1f} GFLOP/s" for k, v in measured[0].items()))
-    # name: (packing, bf16: False, True (as the trainer chooses) or "forced", torch_compile, prompt)
-    runs = {"padded-fp32": (False, False, "none", prompt), "packed-fp32": (True, False, "none", prompt),
-            "packed-bf16": (True, "forced", "none", prompt)}
+    # name: (packing, bf16, bf16_when_faster, torch_compile, prompt)
+    runs = {"padded-fp32": (False, False, False, "none", prompt), "packed-fp32": (True, False, False, "none", prompt),
+            "packed-bf16": (True, True, False, "none", prompt)}
     default = f"default ({precision}, {scope} compile)" if scope != "none" else f"packed-{precision}"
+    when_faster = f"default, bf16 when faster ({faster}, {scope} compile)"
     if scope != "none":
-        if train_cfg.bf16:
-            runs[f"bf16 forced, {scope} compile"] = (True, "forced", scope, prompt)
-        runs[default] = (True, bool(train_cfg.bf16), scope, prompt)
+        runs[default] = (True, train_cfg.bf16, train_cfg.bf16_when_faster, scope, prompt)
+        if faster != precision:
+            runs[when_faster] = (True, train_cfg.bf16, True, scope, prompt)
     if "paper" in sets and prompt != "paper":
-        runs["default, paper prompt"] = (*runs[default][:3], "paper")
-    selected = {"default": default, "forced": f"bf16 forced, {scope} compile"}
+        runs["default, paper prompt"] = (*runs[default][:4], "paper")
+    selected = {"default": default, "when-faster": when_faster}
     wanted = {selected.get(name, name) for name in args.only or runs}
     rates: dict[str, tuple[float, float]] = {}  # name: (overall, steady) real tokens/s
     per_token: dict[str, float] = {}  # name: useful training FLOPs per real token of its conversations
-    for name, (packing, bf16, compile_scope, run_prompt) in runs.items():
+    for name, (packing, bf16, bf16_when_faster, compile_scope, run_prompt) in runs.items():
         if name not in wanted:
             continue
         texts = sets[run_prompt]
@@ -204,13 +190,13 @@ def main() -> None:
         mean_tokens = statistics.fmean(run_lengths)
         settings = TrainSettings(
             max_steps=args.steps, per_device_batch_size=train_cfg.per_device_batch_size,
-            learning_rate=train_cfg.learning_rate, packing=packing, bf16=bool(bf16),
+            learning_rate=train_cfg.learning_rate, packing=packing, bf16=bf16, bf16_when_faster=bf16_when_faster,
             pad_to_multiple_of=train_cfg.pad_to_multiple_of,
             report_to=(), logging_steps=args.steps, save_steps=10 * args.steps, torch_threads=args.threads,
             torch_compile=compile_scope,
         )
         clock = StepClock()
-        with tempfile.TemporaryDirectory() as out, precision_as_asked(bf16 == "forced"):
+        with tempfile.TemporaryDirectory() as out:
             model = make_model(model_cfg, tokenizer, seed=args.seed)
             result = finetune(model, tokenizer, WORD_LEVEL_FORMAT, texts, settings, out, seed=args.seed,
                               max_length=max(run_lengths), callbacks=[clock])
@@ -228,7 +214,7 @@ def main() -> None:
     peak = {k: max(m[k] for m in measured) for k in measured[0]}
     print("matmul peak after: " + ", ".join(f"{k} {v:.1f} GFLOP/s" for k, v in measured[1].items())
           + "; using the best: " + ", ".join(f"{k} {v:.1f}" for k, v in peak.items()))
-    for base in ("padded-fp32", selected["forced"]):
+    for base in ("padded-fp32", default):
         if base not in rates:
             continue
         base_all, base_steady = rates[base]

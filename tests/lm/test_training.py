@@ -209,7 +209,7 @@ def test_precision_and_compile_settings_reach_the_trainer(tmp_path):
     with _dynamo_environment():
         tuned = _training_arguments(TrainSettings(bf16=True, torch_compile="full", **QUIET), tmp_path, 0)
         regional = _training_arguments(TrainSettings(torch_compile="regional", **QUIET), tmp_path, 0)
-    assert tuned.torch_compile
+    assert tuned.bf16 == (torch.cuda.is_available() or cpu_has_bf16()) and tuned.torch_compile
     assert not regional.torch_compile  # compiled in place by finetune, not by Trainer
     assert tuned.use_cpu == (tuned.bf16 and not torch.cuda.is_available())  # bf16 without a GPU is CPU autocast
 
@@ -229,18 +229,21 @@ def test_bf16_on_a_cpu_without_bf16_hardware_falls_back_to_fp32(tmp_path, monkey
 
 
 @pytest.mark.parametrize("fp32, bf16, chosen", [(308.0, 165.0, False), (142.0, 396.0, True), (300.0, 250.0, True)])
-def test_bf16_on_a_cpu_is_chosen_by_its_measured_matmul_peaks(tmp_path, monkeypatch, caplog, fp32, bf16, chosen):
+def test_bf16_when_faster_follows_the_measured_matmul_peaks(tmp_path, monkeypatch, caplog, fp32, bf16, chosen):
     # The first two: the two machines of the README's Speed section (Intel Xeon without AMX; AMD EPYC).
     monkeypatch.setattr("pipeline.lm.training.trainer.torch.cuda.is_available", lambda: False)
     monkeypatch.setattr("pipeline.lm.training.compile.cpu_has_bf16", lambda: True)
+    measured = []
     monkeypatch.setattr("pipeline.lm.training.compile.matmul_peak",
-                        lambda dtype, **_: {torch.float32: fp32, torch.bfloat16: bf16}[dtype])
+                        lambda dtype, **_: measured.append(dtype) or {torch.float32: fp32, torch.bfloat16: bf16}[dtype])
+    # Without the switch the CPU's flags decide alone: bf16, nothing measured (the default recipe's numbers).
+    assert _training_arguments(TrainSettings(bf16=True, **QUIET), tmp_path, 0).bf16 and not measured
     with caplog.at_level("INFO", logger="pipeline.lm.training.compile"):
-        arguments = _training_arguments(TrainSettings(bf16=True, **QUIET), tmp_path, 0)
+        arguments = _training_arguments(TrainSettings(bf16=True, bf16_when_faster=True, **QUIET), tmp_path, 0)
     assert arguments.bf16 is chosen and arguments.use_cpu is chosen
     assert f"bf16 {bf16:.0f}, fp32 {fp32:.0f} GFLOP/s" in caplog.text
     assert ("slower than fp32" in caplog.text) is not chosen
-    assert not _training_arguments(TrainSettings(bf16=False, **QUIET), tmp_path, 0).bf16
+    assert not _training_arguments(TrainSettings(bf16=False, bf16_when_faster=True, **QUIET), tmp_path, 0).bf16
 
 
 @pytest.mark.parametrize("scope, backend", [("none", "NO"), ("regional", "NO"), ("full", "INDUCTOR")])

@@ -1,5 +1,5 @@
-"""How the trainer uses the hardware: bf16 only where the CPU multiplies bf16 in hardware and does so faster than
-fp32 (measured), and torch.compile scoped as `TrainSettings.torch_compile` says (regional compilation in place;
+"""How the trainer uses the hardware: bf16 only where the CPU multiplies bf16 in hardware (and, if asked, measures
+it no slower than fp32), and torch.compile scoped as `TrainSettings.torch_compile` says (regional compilation in place;
 accelerate's compile environment kept out)."""
 
 from __future__ import annotations
@@ -57,9 +57,9 @@ def matmul_peak(dtype: torch.dtype, *, device: str = "cpu", size: int | None = N
     return best
 
 
-def use_bf16(requested: bool) -> bool:
-    """bf16 as asked on a GPU. On a CPU, bf16 autocast only where it pays: a CPU without bf16 hardware, or one
-    whose bf16 matmuls measure below `BF16_MIN_SPEEDUP` times its fp32 ones, trains in fp32 (with a warning
+def use_bf16(requested: bool, when_faster: bool = False) -> bool:
+    """bf16 as asked on a GPU. On a CPU, a CPU without bf16 hardware trains in fp32; with ``when_faster``, so
+    does one whose bf16 matmuls measure below `BF16_MIN_SPEEDUP` times its fp32 ones (each with a warning
     naming the reason)."""
     if not requested or torch.cuda.is_available():
         return requested
@@ -67,6 +67,8 @@ def use_bf16(requested: bool) -> bool:
         log.warning("train.bf16=true but this CPU has no bf16 matmul hardware (no avx512_bf16 or amx_bf16 flag): "
                     "training in fp32 instead")
         return False
+    if not when_faster:
+        return True
     fp32, bf16 = matmul_peak(torch.float32), matmul_peak(torch.bfloat16)
     if bf16 < BF16_MIN_SPEEDUP * fp32:
         log.warning("train.bf16=true but this CPU multiplies bf16 slower than fp32 (matmul peaks on %d threads: bf16 "

@@ -38,8 +38,8 @@ class TrainSettings:
     builds per shape (bf16 on a CPU) are built a few times, not hundreds. ``packing`` groups batches by
     length and sends no attention mask (see `pipeline.lm.training.batches`). ``torch_compile``: see
     `CompileMode`; on a CPU, compiling needs a C++ compiler and the Python headers. ``bf16``: bf16 mixed
-    precision on a GPU; on a CPU, autocast only where it pays (`pipeline.lm.training.compile.use_bf16` measures
-    the bf16 and fp32 matmul peaks), fp32 elsewhere.
+    precision on a GPU; on a CPU, autocast where the CPU has bf16 hardware, and with ``bf16_when_faster`` only
+    where its bf16 matmuls measure no slower than 0.8x fp32's (`pipeline.lm.training.compile.use_bf16`).
     ``accelerate_config``: train under ``accelerate launch --config_file <it>`` (distributed, e.g. FSDP) in a
     subprocess. ``log_checkpoints``: the finetune step also logs every checkpoint's weights (the eval
     step's adaptation curve evaluates them). ``long_conversations`` (`LONG_CONVERSATIONS`): a conversation
@@ -72,6 +72,9 @@ class TrainSettings:
     accelerate_config: Optional[str] = None
     log_checkpoints: bool = False
     long_conversations: str = field(default="drop", metadata={"hash_if_set": True})
+    # On a CPU with bf16 hardware, autocast to bf16 only if its matmuls measure at least 0.8x fp32's (faster
+    # training where bf16 is slow; it changes the numbers: README, Speed). Off: the CPU's flags decide alone.
+    bf16_when_faster: bool = field(default=False, metadata={"hash_if_set": True})
 
     def __post_init__(self) -> None:
         self.report_to = [self.report_to] if isinstance(self.report_to, str) else list(self.report_to)

@@ -121,7 +121,7 @@ def _checkpointing(enabled: bool) -> dict:
 
 
 def _training_arguments(settings: TrainSettings, checkpoints: Path, seed: int) -> TrainingArguments:
-    bf16 = use_bf16(settings.bf16)
+    bf16 = use_bf16(settings.bf16, settings.bf16_when_faster)
     return TrainingArguments(
         output_dir=str(checkpoints),
         max_steps=settings.max_steps if settings.max_steps is not None else -1,
