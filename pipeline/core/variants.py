@@ -1,8 +1,9 @@
 """THE table of what a job can be: directions, modes, the cognitive-map variants and the baselines, with the
-paper's row names, the tables they appear in, and the rules that tie them together.
+paper's row names and the rules that tie them together.
 
 Everything else reads its lists from here: the config's groups and presets (registered in Hydra's ConfigStore
-by `pipeline.workflow.config.register_configs`), the texts, scoring, the report's rows and the figures' order.
+by `pipeline.workflow.config.register_configs`), the texts, scoring, and the report's order of variants (which
+variants each report table shows is the report's registry, `pipeline.report.registry`).
 Adding a variant is one row in `VARIANT_ROWS`; adding a map switch is one field of `MapSwitches` (plus what
 the texts write for it).
 """
