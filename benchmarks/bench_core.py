@@ -20,7 +20,7 @@ from pipeline.core.world import World, load_worlds
 TRAIN_CFG = GeneratorConfig(size_x=(2, 10), size_y=(2, 10))
 TEST_CFG = GeneratorConfig(size_x=(2, 20), size_y=(2, 20))
 # The longest rendering: all moves listed, every dead end marked, plus the backtrack.
-RENDER = dict(direction="bwd", variant="marking-deadend", mode="optimal")
+RENDER = dict(direction="bwd", variant="marking-deadend", mode="optimal", prompt="paper")  # as the paper trains
 
 
 def _render(worlds: list[World]) -> int:

@@ -76,7 +76,7 @@ def main() -> None:
     torch.set_num_threads(args.threads)
 
     worlds = generate_worlds(args.worlds, seed="bench-decode", cfg=GeneratorConfig(size_x=(3, 6), size_y=(3, 6)))
-    texts = [t["value"] for w in worlds for t in conversation(w, "bwd", "marking-deadend", "reachable")]
+    texts = [t["value"] for w in worlds for t in conversation(w, "bwd", "marking-deadend", "reachable", prompt="paper")]
     tokenizer = build_word_tokenizer(texts)
     model = make_model(ModelSettings(max_length=4096), tokenizer).eval().to(args.device)  # the CPU default's model
     print(f"model: {sum(p.numel() for p in model.parameters()) / 1e6:.2f}M params on {args.device}, threads {args.threads}; "
@@ -106,7 +106,7 @@ def main() -> None:
     print(f"  cached / re-encoded history:     {rate['cached'] / rate['reencode']:.1f}x (target >= 2x)")
 
     # Optimal setting
-    prompts = [prompt_turns(w) for w in worlds]
+    prompts = [prompt_turns(w, "paper") for w in worlds]
     ours = {}
     for batch_size in (args.batch_size, 1):
         dec = decoder(batch_size, max_new_tokens=args.answer_tokens)

@@ -12,8 +12,8 @@ conversations through `pipeline.lm.training.trainer.finetune`, with the default 
   weights; fp32 on a CPU without them), eager.
 - ``default``: exactly what ``--train`` sets, its ``torch_compile`` scope included (the CPU default:
   ``regional``). Only when that scope is not ``none``.
-- ``default, bf16 when faster``: the same with ``bf16_when_faster`` (bf16 only where its matmuls measure at
-  least 0.8x fp32's), when that picks another precision on this machine.
+- ``default, bf16 when faster``: the same with ``bf16_when_faster`` (`pipeline.lm.training.compile.use_bf16`),
+  when that picks another precision on this machine.
 - ``default, paper prompt``: the same on the same worlds with the paper's instruction turns, when ``--model``
   prompts with the task turn alone (``prompt: task``, the CPU default): tokens/s barely move, conversations/s
   is what the switch buys.
@@ -103,13 +103,13 @@ def preset(settings_class, path):
     return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(settings_class), OmegaConf.load(path)))
 
 
-def cpu_conversations(n: int, seed: int, prompt: str = "task") -> list[list[dict]]:
+def cpu_conversations(n: int, seed: int, prompt: str) -> list[list[dict]]:
     """What the default job trains on (conf/data/cpu.yaml sizes; BWD marking-deadend, optimal setting)."""
     gen = preset(DataSettings, ROOT / "conf" / "data" / "cpu.yaml").generator_config("train")
     return [conversation(w, "bwd", "marking-deadend", "optimal", prompt=prompt) for w in generate_worlds(n, seed, gen)]
 
 
-def paper_conversations(n: int, seed: int, prompt: str = "task", low: int = 300, high: int = 1500) -> list[list[dict]]:
+def paper_conversations(n: int, seed: int, prompt: str, low: int = 300, high: int = 1500) -> list[list[dict]]:
     """``n`` FWD marking-deadend conversations of paper-size worlds whose word-level length is in [low, high]."""
     texts = [conversation(w, "fwd", "marking-deadend", "optimal", prompt=prompt) for w in generate_worlds(3 * n, seed)]
     tokenizer = build_word_tokenizer(t["value"] for c in texts for t in c)
@@ -148,7 +148,8 @@ def main() -> None:
     lengths = [len(encode_conversation(tokenizer, WORD_LEVEL_FORMAT, c)[0]) for c in conversations]
     probe = make_model(model_cfg, tokenizer, seed=args.seed)
     flops_per_real_token = training_flops(probe, lengths) / sum(lengths)
-    # What the trainer will choose on this machine, as --train asks and with bf16_when_faster.
+    # What the trainer will choose on this machine (on the runs' threads), as --train asks and with bf16_when_faster.
+    torch.set_num_threads(args.threads)
     precision = "bf16" if use_bf16(train_cfg.bf16, train_cfg.bf16_when_faster) else "fp32"
     faster = "bf16" if use_bf16(train_cfg.bf16, True) else "fp32"
     scope = train_cfg.torch_compile.value

@@ -75,7 +75,7 @@ def make_local_model(target: Path, hidden: int = 512, layers: int = 8, heads: in
     else:
         worlds = generate_worlds(64, seed="gpu-paths", cfg=GeneratorConfig(size_x=(2, 6), size_y=(2, 6)))
         texts = [turn["value"] for world in worlds for direction in ("fwd", "bwd") for variant in MAP_VARIANTS
-                 for mode in ("optimal", "reachable") for turn in conversation(world, direction, variant, mode)]
+                 for mode in ("optimal", "reachable") for turn in conversation(world, direction, variant, mode, prompt="paper")]
         tokenizer = build_word_tokenizer(texts)
     settings = ModelSettings(hidden_size=hidden, num_layers=layers, num_heads=heads, intermediate_size=4 * hidden,
                              max_length=8192 if tokenizer_dir else 2048)

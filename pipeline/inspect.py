@@ -1,4 +1,5 @@
-"""`python -m pipeline.inspect RUN_ID`: one eval run's episodes beside the golden answers."""
+"""`python -m pipeline.inspect RUN_ID`: one eval run's episodes beside the golden answers (``--labels``: the
+job's model graded on every label of the golden maps)."""
 
 import sys
 

@@ -11,6 +11,7 @@ for ``cut``. Nothing here raises on model text.
 from __future__ import annotations
 
 import re
+from itertools import islice
 from dataclasses import asdict, dataclass
 
 from pipeline.core.scoring import _as_text, first_difference
@@ -89,6 +90,25 @@ def _label_error(expected: str, got: str | None) -> str | None:
     return "wrong move" if expected in MOVES and got in MOVES else None
 
 
+def _walk(golden: list[str]):
+    """Each golden line's place: (section, line kind, BFS step or None, lines so far in this step's neighbour
+    lists, ``From`` lines so far in this step minus one). The one reading of a golden answer's structure."""
+    section, bfs_step, in_step, named_states = "", None, 0, -1
+    for line in golden:
+        if line in _HEADERS:
+            section, kind = _HEADERS[line], "section header"
+        elif section == "thought" and is_step_header(line):
+            bfs_step, in_step, named_states, kind = (bfs_step or 0) + 1, 0, -1, "step header"
+        elif section == "thought" and line.startswith("From "):
+            named_states, kind = named_states + 1, "state name"
+        elif section == "thought":
+            kind = "coordinate" if in_step % 2 == 0 else "label"
+            in_step += 1
+        else:
+            kind = section
+        yield section, kind, bfs_step, in_step, named_states
+
+
 def first_wrong_line(world: World, direction: str, variant: str, text: object, steps: str = "numbered"
                      ) -> ErrorSite | None:
     """The first line of ``text`` that departs from the golden optimal-setting answer, classified; None if
@@ -102,23 +122,8 @@ def first_wrong_line(world: World, direction: str, variant: str, text: object, s
     if index >= len(golden):
         return ErrorSite(index, "end", "end", got=got)
     switches = MAP_VARIANTS.get(variant)
-    section, bfs_step, state, in_step, named_states = "", None, None, 0, -1
-    for i, line in enumerate(golden[: index + 1]):
-        if line in _HEADERS:
-            section = _HEADERS[line]
-            kind = "section header"
-        elif section == "thought" and is_step_header(line):
-            bfs_step, in_step, named_states, kind = (bfs_step or 0) + 1, 0, -1, "step header"
-        elif section == "thought" and line.startswith("From "):
-            named_states += 1
-            kind = "state name"
-        elif section == "thought":
-            kind = "coordinate" if in_step % 2 == 0 else "label"
-            in_step += 1
-        else:
-            kind = section
-        if i == index:
-            break
+    section, kind, bfs_step, in_step, named_states = next(islice(_walk(golden), index, None))
+    state = None
     expected = golden[index]
     if section == "thought" and kind in ("coordinate", "label", "state name"):
         if switches is not None and switches.named:
@@ -139,20 +144,8 @@ def label_kinds(world: World, direction: str, variant: str, steps: str = "number
     one of NEIGHBOURS): what a teacher-forced probe grades the model's labels by."""
     golden = golden_answer(world, direction, variant, "optimal", steps=steps).split("\n")
     levels = _levels(world, world.start if direction == "fwd" else world.goal)
-    found, section, bfs_step, in_step = [], "", 0, 0
-    for index, line in enumerate(golden):
-        if line in _HEADERS:
-            section = _HEADERS[line]
-        elif section != "thought" or line.startswith("From "):
-            continue
-        elif is_step_header(line):
-            bfs_step, in_step = bfs_step + 1, 0
-        else:
-            in_step += 1
-            kind = _neighbour_kind(world, _cell(golden[index - 1]), levels, bfs_step) if in_step % 2 == 0 else None
-            if kind is not None:
-                found.append((index, kind))
-    return found
+    return [(index, _neighbour_kind(world, _cell(golden[index - 1]), levels, bfs_step))
+            for index, (_, kind, bfs_step, _, _) in enumerate(_walk(golden)) if kind == "label"]
 
 
 # Buckets of the BFS step a wrong thought line is in (ErrorSite.step).

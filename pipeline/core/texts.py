@@ -92,7 +92,8 @@ def first_human_text(world: World) -> str:
 
 
 def prompt_turns(world: World, prompt: str = DEFAULT_PROMPT) -> list[dict[str, str]]:
-    """What a model is prompted with: the paper's three turns, or (``prompt="task"``) the task turn alone."""
+    """What a model is prompted with: the paper's three turns (``prompt="paper"``), or the task turn alone
+    (``"task"``, the default)."""
     check_choice("prompt", prompt, PROMPTS)
     task = {"from": "human", "value": first_human_text(world)}
     if prompt == "task":

@@ -1,8 +1,9 @@
-"""`python -m pipeline.inspect RUN_ID [--world N] [--failed]`: show what a model wrote for a test world.
+"""`python -m pipeline.inspect RUN_ID [--world N] [--failed] | --labels`: show what a model wrote for a test world.
 
 RUN_ID is a job run or its eval run. For each episode shown: the world and the outcome, the task prompt,
 and the model's answer beside the golden one (rebuilt from the world), the first differing line marked; in
-the reachable setting, the model's answer of every turn after the observation it answered.
+the reachable setting, the model's answer of every turn after the observation it answered. With
+``--labels``: the job's model graded on every label of every test world's golden map (`probe_labels`).
 """
 
 from __future__ import annotations
@@ -146,7 +147,7 @@ def probe_labels(tracking_uri: str, run_id: str, limit: int | None = None) -> st
     from mlflow.tracking import MlflowClient
 
     from pipeline.core.map_errors import NEIGHBOURS, label_kinds
-    from pipeline.core.texts import golden_answer, prompt_turns
+    from pipeline.core.texts import prompt_turns
     from pipeline.lm.models import load_chat_format, load_model, load_tokenizer
     from pipeline.lm.probe import labels_predicted
     from pipeline.report.stats import wilson_interval
@@ -155,7 +156,7 @@ def probe_labels(tracking_uri: str, run_id: str, limit: int | None = None) -> st
     job, evaluation = _runs(client, run_id)
     tags = job.data.tags
     variant = tags.get("variant", "")
-    if variant not in VARIANTS or not MAP_VARIANTS.get(variant):
+    if variant not in MAP_VARIANTS:
         raise InspectError(f"job {job.info.run_id} has variant {variant!r}: --labels grades a cognitive map's labels")
     with tempfile.TemporaryDirectory() as scratch:
         data_id = tags[step_run_tag("data-build")]
@@ -201,6 +202,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="grade the model's labels on every test world's golden map (a teacher-forced probe)")
     add_store_arguments(parser)
     args = parser.parse_intermixed_args(argv)  # tracking.root=DIR may follow the options
+    if args.labels and (args.world is not None or args.failed):
+        parser.error("--labels grades every test world's labels; it takes --limit, not --world or --failed")
     tracking_uri, _ = store_of(parser, args)
     try:
         if args.labels:

@@ -10,9 +10,9 @@ import shutil
 import sys
 import sysconfig
 from pathlib import Path
-from dataclasses import dataclass, field, fields, is_dataclass, make_dataclass
+from dataclasses import MISSING as MISSING_FIELD, dataclass, field, fields, is_dataclass, make_dataclass
 from enum import Enum
-from typing import Any, Optional
+from typing import Any, Optional, get_type_hints
 
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, OmegaConf
@@ -60,11 +60,19 @@ class _JobConfig:
     work_dir: str = MISSING
 
 
-# The job's whole config: the fields above and one boolean per map switch of the variants table (`SWITCHES`),
-# each defaulting to the reference variant's. Its sections are the settings the code itself takes.
-RunConfig = make_dataclass(
-    "RunConfig", [(name, bool, field(default=on)) for name, on in BY_NAME[REFERENCE].switches._asdict().items()],
-    bases=(_JobConfig,))
+def _run_config() -> type:
+    """The job's whole config: `_JobConfig`'s fields with one boolean per map switch of the variants table
+    (`SWITCHES`) after ``baseline``, each defaulting to the reference variant's. Its sections are the settings
+    the code itself takes."""
+    switches = [(name, bool, field(default=on)) for name, on in BY_NAME[REFERENCE].switches._asdict().items()]
+    types = get_type_hints(_JobConfig)  # the annotations as types (this module's are strings)
+    job = [(f.name, types[f.name], field(default=f.default) if f.default_factory is MISSING_FIELD else
+            field(default_factory=f.default_factory)) for f in fields(_JobConfig)]
+    at = 1 + next(i for i, (name, _, _) in enumerate(job) if name == "baseline")
+    return make_dataclass("RunConfig", [*job[:at], *switches, *job[at:]])
+
+
+RunConfig = _run_config()
 
 _ON_OFF = {"on": True, "off": False}
 

@@ -59,9 +59,7 @@ class DataSettings:
     train_file: Optional[str] = None
     seed: int = 0
     workers: int = 2
-    # How worlds are grown: "project" (a dead end restarts the tree) or "paper" (the paper's generator: it
-    # backtracks over its choices, and lists walls and pits in its order; see pipeline.core.generators.paper).
-    generator: str = GeneratorConfig.generator
+    generator: str = GeneratorConfig.generator   # pipeline.core.generators: "project" or "paper"
 
     def __post_init__(self) -> None:
         # As lists, so a message writes a range the same way whether it came as a list, a tuple or from the config.

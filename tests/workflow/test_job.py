@@ -15,6 +15,7 @@ from conftest import ROOT, compose_job
 from pipeline.workflow.config import ConfigError
 from pipeline.workflow.job import run_job
 from pipeline.core.episodes import EPISODE_FIELDS
+from pipeline.workflow.data_build import TEST_WORLDS
 from pipeline.workflow.tracking import EPISODES_ARTIFACT, JOB_KIND, KIND_TAG, step_run_tag
 
 TOY = ["data=toy", "model=toy", "train=toy", "eval=toy", "train.max_steps=2", "eval.n_worlds=3",
@@ -91,6 +92,20 @@ def test_the_finetuned_model_is_an_mlflow_model_and_inspect_shows_its_answers(tm
                            f"tracking.root={tmp_path}"], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0 and done.stdout.split("\n", 1)[1] == text.split("\n", 1)[1]
     assert "Downloading artifacts" not in done.stdout + done.stderr
+    # The teacher-forced probe of the same model: a row per kind of neighbour, counts that add up to the labels
+    # of the first world's golden map.
+    from pipeline.core.map_errors import NEIGHBOURS, label_kinds
+    from pipeline.core.world import load_worlds
+    from pipeline.report.answers import probe_labels
+
+    probed = probe_labels(cfg.tracking.uri, job.info.run_id, limit=1).splitlines()
+    assert [row.split()[0] for row in probed[2:]] == list(NEIGHBOURS)
+    world = load_worlds(mlflow.artifacts.download_artifacts(
+        run_id=job.data.tags[step_run_tag("data-build")], artifact_path=TEST_WORLDS, tracking_uri=cfg.tracking.uri))[0]
+    counts = [int(n) for row in probed[2:] for n in re.findall(r"\(\d+/(\d+)\)", row)]
+    assert sum(counts) == len(label_kinds(world, "bwd", "marking-deadend"))
+    with pytest.raises(SystemExit):
+        inspect_main([eval_id, "--labels", "--world", "1", "--tracking-uri", cfg.tracking.uri])
     from pipeline.report.build import main as report_main
 
     assert report_main([f"tracking.root={tmp_path}", "--no-log-run"]) == 0

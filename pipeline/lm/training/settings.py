@@ -39,7 +39,7 @@ class TrainSettings:
     length and sends no attention mask (see `pipeline.lm.training.batches`). ``torch_compile``: see
     `CompileMode`; on a CPU, compiling needs a C++ compiler and the Python headers. ``bf16``: bf16 mixed
     precision on a GPU; on a CPU, autocast where the CPU has bf16 hardware, and with ``bf16_when_faster`` only
-    where its bf16 matmuls measure no slower than 0.8x fp32's (`pipeline.lm.training.compile.use_bf16`).
+    where its bf16 matmuls measure at least `BF16_MIN_SPEEDUP` times fp32's (`pipeline.lm.training.compile.use_bf16`).
     ``accelerate_config``: train under ``accelerate launch --config_file <it>`` (distributed, e.g. FSDP) in a
     subprocess. ``log_checkpoints``: the finetune step also logs every checkpoint's weights (the eval
     step's adaptation curve evaluates them). ``long_conversations`` (`LONG_CONVERSATIONS`): a conversation
@@ -72,8 +72,7 @@ class TrainSettings:
     accelerate_config: Optional[str] = None
     log_checkpoints: bool = False
     long_conversations: str = field(default="drop", metadata={"hash_if_set": True})
-    # On a CPU with bf16 hardware, autocast to bf16 only if its matmuls measure at least 0.8x fp32's (faster
-    # training where bf16 is slow; it changes the numbers: README, Speed). Off: the CPU's flags decide alone.
+    # Faster training where a CPU's bf16 is slow; it changes the numbers (README, Speed).
     bf16_when_faster: bool = field(default=False, metadata={"hash_if_set": True})
 
     def __post_init__(self) -> None:
