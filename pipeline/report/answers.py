@@ -205,7 +205,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.labels and (args.world is not None or args.failed):
         parser.error("--labels grades every test world's labels; it takes --limit, not --world or --failed")
     tracking_uri, _ = store_of(parser, args)
-    try:
+    try:  # the error exit every command line of the project shares (boilerplate)
         if args.labels:
             print(probe_labels(tracking_uri, args.run_id, args.limit), end="")
         else:

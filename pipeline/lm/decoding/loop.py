@@ -65,11 +65,6 @@ class DecodedEpisode:
     def n_moves(self) -> int:
         return self.transcript.n_moves
 
-    def to_dict(self) -> dict:
-        """Flat JSON-ready row: the env transcript's fields plus index, answers, token count and error."""
-        return {"world_index": self.world_index, **self.transcript.to_dict(), "answers": list(self.answers),
-                "n_tokens": self.n_tokens, "error": self.error}
-
 
 class Request(NamedTuple):
     """Ids to append to a sequence (a new key starts one), and the cap on the tokens generated after them."""
