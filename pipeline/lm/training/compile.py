@@ -1,6 +1,6 @@
 """How the trainer uses the hardware: bf16 only where the CPU multiplies bf16 in hardware (and, if asked, only
-where it measures at least `BF16_MIN_SPEEDUP` times the fp32 rate), and torch.compile scoped as `TrainSettings.torch_compile` says (regional compilation in place;
-accelerate's compile environment kept out)."""
+where it measures at least `BF16_MIN_SPEEDUP` times the fp32 rate), and torch.compile scoped as
+`TrainSettings.torch_compile` says (regional compilation in place; accelerate's compile environment kept out)."""
 
 from __future__ import annotations
 
