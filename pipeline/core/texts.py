@@ -8,10 +8,13 @@ from functools import lru_cache, cache
 from pipeline.core.variants import DIRECTIONS, MAP_VARIANTS, VARIANTS, check, check_choice
 from pipeline.core.world import MOVES, Cell, World, move_between, step
 
-# What a model is prompted with: the paper's three turns (instruction, "OK", task), or the task turn alone.
-# The instruction is the same English text in every conversation: a model trained from scratch learns
-# nothing from it, yet pays for its tokens in every step; pretrained models keep the paper's prompt.
-PROMPTS: tuple[str, ...] = ("paper", "task")
+# What a model is prompted with: the paper's three turns (instruction, "OK", task), the task turn alone, or
+# the task turn alone with the grid's free cells listed too ("cells", not in the paper). The instruction is
+# the same English text in every conversation: a model trained from scratch learns nothing from it, yet pays
+# for its tokens in every step; pretrained models keep the paper's prompt. The paper lists only the pits and
+# walls, so a free cell is known by no match among them; "cells" lists the free cells too, so every cell
+# of the grid is known by a match (the lookup a label needs stays a lookup as the lists grow).
+PROMPTS: tuple[str, ...] = ("paper", "task", "cells")
 # The job's default (`ModelSettings.prompt`) and every signature's: the task turn alone, for the models trained
 # from scratch; the paper-scale presets choose "paper".
 DEFAULT_PROMPT = "task"
@@ -66,13 +69,24 @@ def _listing(kind: str, cells: tuple[Cell, ...]) -> str:
     return f"The {kind} is at {', '.join(texts[:-1])}, and {texts[-1]}."
 
 
-def task_text(world: World) -> str:
-    """The task part of the third human turn (docs/spec.md §2.3), ending in a newline; the observation follows."""
+def free_cells(world: World) -> tuple[Cell, ...]:
+    """The grid's free cells (neither wall nor pit), start and goal included, in an order drawn from the world
+    alone (the obstacle lists are in no spatial order either, so a list position tells nothing)."""
+    cells = [(x, y) for x in range(world.x0, world.x1 + 1) for y in range(world.y0, world.y1 + 1)
+             if world.is_free((x, y))]
+    random.Random(f"free:{world.x0},{world.y0},{world.x1},{world.y1},{world.walls},{world.pits}").shuffle(cells)
+    return tuple(cells)
+
+
+def task_text(world: World, cells: bool = False) -> str:
+    """The task part of the third human turn (docs/spec.md §2.3), ending in a newline; the observation follows.
+    ``cells``: the free cells are listed after the walls (the "cells" prompt, not in the paper)."""
+    listed = f" {_listing('free cell', free_cells(world))}" if cells else ""
     return (
         f"Grid is from {cell_text((world.x0, world.y0))} to {cell_text((world.x1, world.y1))}. "
         f"Goal: {cell_text(world.goal)}\n"
         f"Current: {cell_text(world.start)}\n"
-        f"{_listing('pit', world.pits)} {_listing('wall', world.walls)}\n"
+        f"{_listing('pit', world.pits)} {_listing('wall', world.walls)}{listed}\n"
     )
 
 
@@ -86,17 +100,17 @@ def observation(world: World, cell: Cell) -> str:
     return "\n".join(lines)
 
 
-def first_human_text(world: World) -> str:
-    """The full third turn: task text then the observation at the start."""
-    return task_text(world) + observation(world, world.start)
+def first_human_text(world: World, cells: bool = False) -> str:
+    """The full third turn: task text (``cells``: with the free cells listed) then the observation at the start."""
+    return task_text(world, cells) + observation(world, world.start)
 
 
 def prompt_turns(world: World, prompt: str = DEFAULT_PROMPT) -> list[dict[str, str]]:
-    """What a model is prompted with: the paper's three turns (``prompt="paper"``), or the task turn alone
-    (``"task"``, the default)."""
+    """What a model is prompted with: the paper's three turns (``prompt="paper"``), the task turn alone
+    (``"task"``, the default), or the task turn alone with the free cells listed (``"cells"``)."""
     check_choice("prompt", prompt, PROMPTS)
-    task = {"from": "human", "value": first_human_text(world)}
-    if prompt == "task":
+    task = {"from": "human", "value": first_human_text(world, cells=prompt == "cells")}
+    if prompt != "paper":
         return [task]
     return [{"from": "human", "value": INSTRUCTION}, {"from": "gpt", "value": ACKNOWLEDGEMENT}, task]
 

@@ -18,6 +18,7 @@ from pipeline.core.texts import (
     cognitive_map,
     cot_thought,
     dfs_moves,
+    free_cells,
     is_step_header,
     observation,
     prompt_turns,
@@ -225,14 +226,38 @@ def test_maps_anywhere_in_the_plane(example_world, offset):
 
 
 def test_task_prompt_is_the_paper_prompt_without_the_instruction(example_world, golden):
-    assert PROMPTS == ("paper", "task")
+    assert PROMPTS == ("paper", "task", "cells")
     paper, task = prompt_turns(example_world, "paper"), prompt_turns(example_world, "task")
     assert task == paper[2:] == [{"from": "human", "value": golden["turn_3"]}]
     for mode in MODES:
         assert conversation(example_world, "bwd", "marking-deadend", mode, prompt="task") == \
             conversation(example_world, "bwd", "marking-deadend", mode, prompt="paper")[2:]
-    with pytest.raises(ValueError, match="unknown prompt 'none'; allowed: paper, task"):
+    with pytest.raises(ValueError, match="unknown prompt 'none'; allowed: paper, task, cells"):
         prompt_turns(example_world, "none")
+
+
+def test_cells_prompt_golden(example_world, golden):
+    """`prompt="cells"` (not in the paper): the task turn with the free cells listed after the walls, in an
+    order drawn from the world alone; the answers do not change."""
+    [turn] = prompt_turns(example_world, "cells")
+    assert turn == {"from": "human", "value": (
+        "Grid is from (0, 0) to (3, 2). Goal: (3, 2)\nCurrent: (0, 0)\nThe pit is at (3, 0). The wall is at "
+        "(1, 1), and (2, 2). The free cell is at (3, 1), (1, 2), (0, 2), (0, 0), (3, 2), (0, 1), (2, 0), (1, 0), "
+        "and (2, 1).\nCurrent:\n(0, 0)\nPossible:\n(0, 1)\nup\n(1, 0)\nright")}
+    assert turn["value"].replace(" The free cell is at (3, 1), (1, 2), (0, 2), (0, 0), (3, 2), (0, 1), (2, 0), "
+                                 "(1, 0), and (2, 1).", "") == golden["turn_3"]
+    for mode in MODES:
+        assert conversation(example_world, "bwd", "marking-deadend", mode, prompt="cells")[1:] == \
+            conversation(example_world, "bwd", "marking-deadend", mode, prompt="task")[1:]
+
+
+@given(worlds())
+def test_free_cells_are_every_open_cell_of_the_grid_once(world):
+    cells = free_cells(world)
+    grid = {(x, y) for x in range(world.x0, world.x1 + 1) for y in range(world.y0, world.y1 + 1)}
+    assert sorted(cells) == sorted(grid - set(world.walls) - set(world.pits))
+    assert world.start in cells and world.goal in cells
+    assert free_cells(world) == cells       # drawn from the world alone: the same every time
 
 
 @pytest.mark.parametrize("direction", DIRECTIONS)

@@ -115,18 +115,20 @@ def test_marking_without_all_moves_is_refused_naming_the_values():
     ("data.train_size_x=[1,5]", "data.train_size_x"),
     ("data.test_size_y=[2,30]", r"data.test_size_y=\[2, 30\] is not allowed; expected 2 <= min <= max <= frame \(6\)"),
     ("data.p_pit=[0.5,1.5]", "data.p_pit"),
+    ("data.train_deep=1.5", r"data.train_deep=1.5 is not allowed; expected a fraction in \[0, 1\]"),
+    ("data.generator=paper data.train_deep=0.5", r"data.train_deep=0.5 is not allowed; expected 0 with generator=paper"),
     ("data.n_train=0", "data.n_train"),
     ("eval.n_worlds=100000", "eval.n_worlds=100000"),
     ("train.max_steps=0", "train.max_steps"),
     ("model=hf", "model.path"),
     ("model.attn_implementation=flash", "model.attn_implementation='flash'.*sdpa, eager"),
-    ("model.prompt=short", "model.prompt='short' is not allowed; expected one of paper, task"),
+    ("model.prompt=short", "model.prompt='short' is not allowed; expected one of paper, task, cells"),
     ("model.log_model=copy", "model.log_model='copy' is not allowed; expected one of transformers, reference"),
     ("eval.rules=strict", "eval.rules='strict' is not allowed; expected one of project, paper"),
     ("train.long_conversations=cut", "train.long_conversations='cut' is not allowed; expected one of drop, truncate"),
 ])
 def test_bad_values_fail_before_any_work(override, message):
-    cfg = _compose([override, "model.path=null"] if override == "model=hf" else [override])
+    cfg = _compose([override, "model.path=null"] if override == "model=hf" else override.split())
     with pytest.raises(ConfigError, match=message):
         validate(cfg)
 
