@@ -1,5 +1,5 @@
 """`python -m pipeline.inspect RUN_ID`: one eval run's episodes beside the golden answers (``--labels``: the
-job's model graded on every label of the golden maps)."""
+job's model graded on every line of the golden answers)."""
 
 import sys
 

@@ -148,6 +148,28 @@ def label_kinds(world: World, direction: str, variant: str, steps: str = "number
             for index, (_, kind, bfs_step, _, _) in enumerate(_walk(golden)) if kind == "label"]
 
 
+# What `line_kinds` calls a golden line: LINE_KINDS' thought and section kinds, with a Backtrack line split into
+# the cell it is at and the move it takes from there.
+PROBE_KINDS = ("section header", "step header", "state name", "coordinate", "label", "backtrack cell",
+               "backtrack move", "plan")
+
+
+def line_kinds(world: World, direction: str, variant: str, steps: str = "numbered") -> list[tuple[str, int | None]]:
+    """Every line of the golden optimal-setting answer as (one of PROBE_KINDS, the move's 0-based index in its
+    section for a backtrack move or plan line, else None): what a teacher-forced probe grades lines by."""
+    golden = golden_answer(world, direction, variant, "optimal", steps=steps).split("\n")
+    kinds, moves = [], {"backtrack": 0, "plan": 0}
+    for line, (_, kind, *_) in zip(golden, _walk(golden)):
+        if kind == "backtrack" and _cell(line) is not None:
+            kinds.append(("backtrack cell", None))
+        elif kind in moves:
+            kinds.append(("backtrack move" if kind == "backtrack" else "plan", moves[kind]))
+            moves[kind] += 1
+        else:
+            kinds.append((kind, None))
+    return kinds
+
+
 # Buckets of the BFS step a wrong thought line is in (ErrorSite.step).
 STEP_BUCKETS = ("step 1", "step 2", "steps 3-5", "steps 6+")
 

@@ -3,7 +3,7 @@
 RUN_ID is a job run or its eval run. For each episode shown: the world and the outcome, the task prompt,
 and the model's answer beside the golden one (rebuilt from the world), the first differing line marked; in
 the reachable setting, the model's answer of every turn after the observation it answered. With
-``--labels``: the job's model graded on every label of every test world's golden map (`probe_labels`).
+``--labels``: the job's model graded on every line of every test world's golden answer (`probe_labels`).
 """
 
 from __future__ import annotations
@@ -142,15 +142,14 @@ def inspect_run(tracking_uri: str, run_id: str, world: int | None = None, failed
 
 def probe_labels(tracking_uri: str, run_id: str, limit: int | None = None) -> str:
     """The text of ``python -m pipeline.inspect RUN_ID --labels``: the job's model, fed each test world's golden
-    map, graded on every label line (`pipeline.lm.probe`); accuracy by what the neighbour is, inside the
-    training sizes and beyond them."""
+    answer, graded on every line (`pipeline.lm.probe`): the map's labels by what the neighbour is, every line by
+    its kind, and the Backtrack's and Plan's moves by their index; inside the training sizes and beyond them."""
     from mlflow.tracking import MlflowClient
 
-    from pipeline.core.map_errors import NEIGHBOURS, label_kinds
+    from pipeline.core.map_errors import NEIGHBOURS, PROBE_KINDS, label_kinds, line_kinds
     from pipeline.core.texts import prompt_turns
     from pipeline.lm.models import load_chat_format, load_model, load_tokenizer
     from pipeline.lm.probe import labels_predicted
-    from pipeline.report.stats import wilson_interval
 
     client = MlflowClient(tracking_uri)
     job, evaluation = _runs(client, run_id)
@@ -168,27 +167,51 @@ def probe_labels(tracking_uri: str, run_id: str, limit: int | None = None) -> st
         model, tokenizer = load_model(model_dir).eval(), load_tokenizer(model_dir)
         fmt = load_chat_format(model_dir)
     direction, steps = spec.get("direction") or tags.get("direction", "fwd"), spec.get("step_headers") or "numbered"
-    counts: dict[tuple[bool, str], list[int]] = {}
+    labels: dict[tuple[bool, str], list[int]] = {}
+    lines: dict[tuple[bool, str], list[int]] = {}
+    moves: dict[tuple[str, int], list[int]] = {}
     for record in records[:limit]:
-        world = worlds[record["world_index"]]
-        kinds = label_kinds(world, direction, variant, steps)
+        world, inside = worlds[record["world_index"]], record["interpolated"]
+        kinds = line_kinds(world, direction, variant, steps)
         answer = golden_answer(world, direction, variant, "optimal", steps=steps)
         graded = labels_predicted(model, tokenizer, fmt, prompt_turns(world, spec.get("prompt", "paper")), answer,
-                                  [line for line, _ in kinds])
-        for (_, kind), ok in zip(kinds, graded):
-            tally = counts.setdefault((record["interpolated"], kind), [0, 0])
-            tally[0], tally[1] = tally[0] + ok, tally[1] + 1
-    rows = [f"job {job.info.run_id} · {direction} {variant} · {len(records[:limit])} test worlds, each fed its "
-            "golden map: labels predicted (greedy, every token of the line), 95% Wilson interval",
-            f"{'neighbour':<10} {'inside the training sizes':<34} beyond them"]
-    for kind in NEIGHBOURS:
-        cells = []
-        for inside in (True, False):
-            ok, n = counts.get((inside, kind), (0, 0))
-            low, high = wilson_interval(ok, n) if n else (0.0, 0.0)
-            cells.append(f"{ok / n:.3f} [{low:.3f}, {high:.3f}] ({ok}/{n})" if n else "-")
-        rows.append(f"{kind:<10} {cells[0]:<34} {cells[1]}")
+                                  range(len(kinds)))
+        for line, kind in label_kinds(world, direction, variant, steps):
+            _tally(labels, (inside, kind), graded[line])
+        for (kind, move), ok in zip(kinds, graded):
+            _tally(lines, (inside, kind), ok)
+            if move is not None and not inside:
+                _tally(moves, (kind, move), ok)
+    head = (f"job {job.info.run_id} · {direction} {variant} · {len(records[:limit])} test worlds, each fed its "
+            "golden answer: lines predicted (greedy, every token of the line), 95% Wilson interval")
+    rows = [head, "", f"{'label of a':<14} {'inside the training sizes':<34} beyond them"]
+    rows += [f"{kind:<14} {_rate(labels, (True, kind)):<34} {_rate(labels, (False, kind))}" for kind in NEIGHBOURS]
+    rows += ["", f"{'every line':<14} {'inside the training sizes':<34} beyond them"]
+    rows += [f"{kind:<14} {_rate(lines, (True, kind)):<34} {_rate(lines, (False, kind))}" for kind in PROBE_KINDS
+             if (True, kind) in lines or (False, kind) in lines]
+    if moves:
+        last = max(move for _, move in moves) + 1
+        rows += ["", "beyond the training sizes, by the move's number (1 = first)",
+                 f"{'move':<6} {'backtrack move':<34} plan"]
+        rows += [f"{move + 1:<6} {_rate(moves, ('backtrack move', move)):<34} {_rate(moves, ('plan', move))}"
+                 for move in range(last)]
     return "\n".join(rows) + "\n"
+
+
+def _tally(counts: dict, key, ok: bool) -> None:
+    tally = counts.setdefault(key, [0, 0])
+    tally[0], tally[1] = tally[0] + ok, tally[1] + 1
+
+
+def _rate(counts: dict, key) -> str:
+    """``ok / n`` as a rate with its 95% Wilson interval, or - where nothing was graded."""
+    from pipeline.report.stats import wilson_interval
+
+    ok, n = counts.get(key, (0, 0))
+    if not n:
+        return "-"
+    low, high = wilson_interval(ok, n)
+    return f"{ok / n:.3f} [{low:.3f}, {high:.3f}] ({ok}/{n})"
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -199,7 +222,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--limit", type=int, help="how many episodes without --world (default 3; with --labels: "
                                                    "how many test worlds, default all)")
     parser.add_argument("--labels", action="store_true",
-                        help="grade the model's labels on every test world's golden map (a teacher-forced probe)")
+                        help="grade the model on every line of every test world's golden answer (a teacher-forced "
+                             "probe: labels by neighbour, lines by kind, moves by number)")
     add_store_arguments(parser)
     args = parser.parse_intermixed_args(argv)  # tracking.root=DIR may follow the options
     if args.labels and (args.world is not None or args.failed):

@@ -7,7 +7,7 @@ from hypothesis import given, settings, strategies as st
 
 from pipeline import World
 from pipeline.core.map_errors import (
-    LINE_KINDS, NEIGHBOURS, STEP_BUCKETS, category, first_wrong_line, label_kinds, step_bucket,
+    LINE_KINDS, NEIGHBOURS, STEP_BUCKETS, category, first_wrong_line, label_kinds, line_kinds, step_bucket,
 )
 from pipeline.core.texts import golden_answer
 
@@ -142,3 +142,18 @@ def test_label_kinds_are_every_label_line_and_agree_with_the_first_wrong_line(va
         wrong = "cut" if golden[line] != "cut" else "up"
         site = first_wrong_line(WORLD, "bwd", variant, "\n".join(golden[:line] + [wrong] + golden[line + 1:]))
         assert (site.index, site.line, site.neighbour) == (line, "label", kind)
+
+
+def test_line_kinds_name_every_golden_line_and_number_the_moves():
+    golden = golden_answer(WORLD, "bwd", "marking-deadend", "optimal").split("\n")
+    kinds = line_kinds(WORLD, "bwd", "marking-deadend")
+    assert len(kinds) == len(golden)
+    assert [kind for kind, _ in kinds if kind == "label"] == ["label"] * len(label_kinds(WORLD, "bwd", "marking-deadend"))
+    backtrack = golden[golden.index("Backtrack:") + 1: golden.index("Plan:")]
+    plan = golden[golden.index("Plan:") + 1:]
+    tail = kinds[golden.index("Backtrack:") + 1:]
+    assert [kind for kind, _ in tail] == ["backtrack cell", "backtrack move"] * (len(backtrack) // 2) + \
+        ["backtrack cell", "section header"] + ["plan"] * len(plan)
+    assert [move for kind, move in tail if kind == "backtrack move"] == list(range(len(plan)))
+    assert [move for kind, move in tail if kind == "plan"] == list(range(len(plan)))
+    assert backtrack[1::2] == plan

@@ -92,18 +92,19 @@ def test_the_finetuned_model_is_an_mlflow_model_and_inspect_shows_its_answers(tm
                            f"tracking.root={tmp_path}"], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0 and done.stdout.split("\n", 1)[1] == text.split("\n", 1)[1]
     assert "Downloading artifacts" not in done.stdout + done.stderr
-    # The teacher-forced probe of the same model: a row per kind of neighbour, counts that add up to the labels
-    # of the first world's golden map.
-    from pipeline.core.map_errors import NEIGHBOURS, label_kinds
+    # The teacher-forced probe of the same model: a row per kind of neighbour with counts that add up to the
+    # labels of the first world's golden answer, then a row per kind of line with counts that add up to its lines.
+    from pipeline.core.map_errors import NEIGHBOURS, PROBE_KINDS, label_kinds, line_kinds
     from pipeline.core.world import load_worlds
     from pipeline.report.answers import probe_labels
 
-    probed = probe_labels(cfg.tracking.uri, job.info.run_id, limit=1).splitlines()
-    assert [row.split()[0] for row in probed[2:]] == list(NEIGHBOURS)
+    blocks = [block.splitlines() for block in probe_labels(cfg.tracking.uri, job.info.run_id, limit=1).split("\n\n")]
     world = load_worlds(mlflow.artifacts.download_artifacts(
         run_id=job.data.tags[step_run_tag("data-build")], artifact_path=TEST_WORLDS, tracking_uri=cfg.tracking.uri))[0]
-    counts = [int(n) for row in probed[2:] for n in re.findall(r"\(\d+/(\d+)\)", row)]
-    assert sum(counts) == len(label_kinds(world, "bwd", "marking-deadend"))
+    counted = [sum(int(n) for row in block[1:] for n in re.findall(r"\(\d+/(\d+)\)", row)) for block in blocks[1:3]]
+    assert [row.split()[0] for row in blocks[1][1:]] == list(NEIGHBOURS)
+    assert counted == [len(label_kinds(world, "bwd", "marking-deadend")), len(line_kinds(world, "bwd", "marking-deadend"))]
+    assert {row[:14].strip() for row in blocks[2][1:]} <= set(PROBE_KINDS)
     with pytest.raises(SystemExit):
         inspect_main([eval_id, "--labels", "--world", "1", "--tracking-uri", cfg.tracking.uri])
     from pipeline.report.build import main as report_main
