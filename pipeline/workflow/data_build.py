@@ -17,7 +17,7 @@ from typing import Iterable, Optional
 import mlflow
 from tqdm import tqdm
 
-from pipeline.core.generators import GeneratorConfig, check_ranges, generate_worlds, world_stats
+from pipeline.core.generators import GeneratorConfig, check_deep, check_ranges, generate_worlds, world_stats
 from pipeline.core.texts import DEFAULT_PROMPT, conversation
 from pipeline.core.variants import BY_NAME, text_direction
 from pipeline.core.world import World, load_worlds, save_worlds
@@ -60,11 +60,16 @@ class DataSettings:
     seed: int = 0
     workers: int = 2
     generator: str = GeneratorConfig.generator   # pipeline.core.generators: "project" or "paper"
+    # Not in the paper: the fraction of train worlds drawn deep (`GeneratorConfig.deep`: start and goal at the
+    # ends of the free tree's longest path, so the same sides hold longer paths); validation and test stay
+    # the paper's (corner to corner).
+    train_deep: float = field(default=0.0, metadata={"hash_if_set": True})
 
     def __post_init__(self) -> None:
         # As lists, so a message writes a range the same way whether it came as a list, a tuple or from the config.
         sizes = ("train_size_x", "train_size_y", "test_size_x", "test_size_y")
         check_ranges(self.generator, self.frame, list(self.p_pit), {name: list(getattr(self, name)) for name in sizes})
+        check_deep(self.generator, self.train_deep, "train_deep")
         for name in ("n_train", "n_test", "workers"):
             require(getattr(self, name) >= 1, name, getattr(self, name), "at least 1")
 
@@ -77,7 +82,7 @@ class DataSettings:
         """The generator settings of the ``train`` or ``test`` split."""
         size_x, size_y = (self.train_size_x, self.train_size_y) if split == "train" else (self.test_size_x, self.test_size_y)
         return GeneratorConfig(size_x=tuple(size_x), size_y=tuple(size_y), frame=self.frame, p_pit=tuple(self.p_pit),
-                               generator=self.generator)
+                               generator=self.generator, deep=self.train_deep if split == "train" else 0.0)
 
 
 @dataclass(frozen=True)

@@ -8,9 +8,9 @@ Importing the package registers every generator; a new one is a module that regi
 # Registered in this order, which is the order messages list them in: the default first.
 from pipeline.core.generators import project
 from pipeline.core.generators import paper
-from pipeline.core.generators.base import (GENERATORS, GeneratorConfig, check_ranges, generate_worlds, sample_world,
-                                           world_rng)
+from pipeline.core.generators.base import (GENERATORS, GeneratorConfig, check_deep, check_ranges, generate_worlds,
+                                           sample_world, world_rng)
 from pipeline.core.generators.stats import WorldStats, world_stats
 
-__all__ = ["GENERATORS", "GeneratorConfig", "WorldStats", "check_ranges", "generate_worlds", "sample_world",
+__all__ = ["GENERATORS", "GeneratorConfig", "WorldStats", "check_deep", "check_ranges", "generate_worlds", "sample_world",
            "world_rng", "world_stats"]

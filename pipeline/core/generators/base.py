@@ -59,9 +59,21 @@ class GeneratorConfig:
     # "project": restart the tree when the goal gets cut off (generators.project); "paper": the paper's
     # backtracking search and list order (generators.paper).
     generator: str = "project"
+    # Not in the paper: the fraction of worlds whose start and goal are the two ends of the longest path of a
+    # tree grown from any cell (deep maps: longer paths than corner to corner in the same sides). "project" only.
+    deep: float = 0.0
 
     def __post_init__(self) -> None:
         check_ranges(self.generator, self.frame, self.p_pit, {"size_x": self.size_x, "size_y": self.size_y})
+        check_deep(self.generator, self.deep)
+
+
+def check_deep(generator: str, deep: float, name: str = "deep") -> None:
+    """Raise `SettingError` (naming the setting ``name``) unless ``deep`` is a fraction in [0, 1] that the
+    generator can draw (0 for "paper")."""
+    require(0.0 <= deep <= 1.0, name, deep, "a fraction in [0, 1]")
+    require(deep == 0.0 or generator == "project", name, deep, f"0 with generator={generator} (deep worlds are "
+            "the project generator's)")
 
 
 def world_rng(seed: int | str, split: str, index: int) -> random.Random:

@@ -46,3 +46,32 @@ def test_generator_matches_the_paper_test_distribution(paper_worlds):
 
     for ours_value, paper_value, tolerance in zip(summary(ours), summary(paper_worlds), (0.02, 0.03, 0.06)):
         assert abs(ours_value - paper_value) < tolerance
+
+
+def _tree_distances(world: World, origin) -> dict:
+    distances, order = {origin: 0}, [origin]
+    for x, y in order:
+        for cell in ((x + 1, y), (x - 1, y), (x, y + 1), (x, y - 1)):
+            if world.is_free(cell) and cell not in distances:
+                distances[cell] = distances[(x, y)] + 1
+                order.append(cell)
+    return distances
+
+
+def test_deep_worlds_join_the_ends_of_the_longest_free_path():
+    """`deep` (not in the paper): start and goal are the two ends of the free tree's longest path, so the same
+    sides hold longer paths than corner to corner; deep=0 draws the same worlds as before it existed."""
+    cfg = GeneratorConfig(size_x=(2, 4), size_y=(2, 4), frame=6, deep=1.0)
+    deep = generate_worlds(300, seed=1, cfg=cfg)
+    for world in deep:
+        assert free_cells_form_a_tree(world)
+        free = list(_tree_distances(world, world.start))
+        diameter = max(max(_tree_distances(world, cell).values()) for cell in free)
+        assert len(world.optimal_moves()) == diameter
+    corner = generate_worlds(300, seed=1, cfg=GeneratorConfig(size_x=(2, 4), size_y=(2, 4), frame=6))
+    assert max(len(w.optimal_moves()) for w in corner) == 6 < max(len(w.optimal_moves()) for w in deep)
+    assert any(w.start != (w.x0, w.y0) for w in deep)
+    half = generate_worlds(300, seed=1, cfg=GeneratorConfig(size_x=(2, 4), size_y=(2, 4), frame=6, deep=0.5))
+    assert 0 < sum(w.start != (w.x0, w.y0) or w.goal != (w.x1, w.y1) for w in half) < 300
+    # deep=0 makes no draw for the choice: the stream, and so every world, is the one without the setting.
+    assert corner == generate_worlds(300, seed=1, cfg=GeneratorConfig(size_x=(2, 4), size_y=(2, 4), frame=6, deep=0.0))
