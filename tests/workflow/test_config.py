@@ -170,18 +170,27 @@ def test_every_sweep_file_is_tested():
     assert sorted(p.stem for p in SWEEPS.glob("*.yaml")) == ["cpu_study", "extrapolation", "paper", "smoke"]
 
 
-def test_the_extrapolation_study_crosses_each_lever_with_two_seeds_on_the_default_job():
+def test_the_extrapolation_study_runs_each_lever_alone_with_two_seeds_on_the_default_job():
     cfg = _compose(name="extrapolation", sweeps=True, hydra_node=True)
     params = cfg.hydra.sweeper.params
-    assert cfg.hydra.launcher.n_jobs == 2 and cfg.threads == 1
-    assert (params["model.step_headers"], params["model.positions"], params.seed) == (
-        "numbered,plain", "rope,nope,alternate", "0,1")
-    for headers in ("numbered", "plain"):
-        for positions in ("rope", "nope", "alternate"):
-            job = validate(_compose([f"model.step_headers={headers}", f"model.positions={positions}"],
-                                    name="extrapolation", sweeps=True))
-            assert (job.variant, job.model.step_headers, job.model.positions) == ("marking-deadend", headers, positions)
-            assert job.eval.n_valid == 200 and job.train.max_steps == 5000
+    assert cfg.hydra.launcher.n_jobs == 2 and cfg.threads == 1 and params.seed == "0,1"
+    levers = params["+lever"].split(",")
+    assert sorted(levers) == sorted(p.stem for p in (SWEEPS / "lever").glob("*.yaml"))
+    def flat(job) -> dict:
+        """The job's data and model settings and its named switch, as dotted keys."""
+        tree = OmegaConf.to_container(job, resolve=False)
+        return {"named": tree["named"], **{f"{section}.{key}": value for section in ("data", "model")
+                                            for key, value in tree[section].items()}}
+
+    default = flat(_compose(["+lever=default"], name="extrapolation", sweeps=True))
+    changed = {}
+    for lever in levers:
+        job = _compose([f"+lever={lever}"], name="extrapolation", sweeps=True)
+        assert validate(job).variant in ("marking-deadend", "marking-deadend-named") and job.train.bf16 is False
+        assert job.eval.n_valid == 200 and job.train.max_steps == 5000 and job.threads == 1
+        changed[lever] = sorted(key for key, value in flat(job).items() if value != default[key])
+    assert changed == {"default": [], "named": ["named"], "plain": ["model.step_headers"],
+                       "cells": ["model.prompt"], "deep": ["data.train_deep"], "alternate": ["model.positions"]}
 
 
 def test_cpu_study_is_the_optimal_half_of_table_1_with_two_seeds_where_asked():
