@@ -117,3 +117,15 @@ def test_validation_worlds_follow_the_test_sizes_and_are_disjoint_from_both_spli
     assert len(keys) == 30 and not keys & {w.key() for w in (*train, *test)}
     assert all(2 <= w.size_x <= 5 and 2 <= w.size_y <= 5 for w in valid)
     assert any(w.size_x > 4 or w.size_y > 4 for w in valid)  # the test distribution, not the training one
+
+
+def test_deep_train_worlds_leave_the_test_and_validation_splits_as_they_were():
+    """`train_deep` (not in the paper) draws deep train worlds only: the test split is the same, validation
+    worlds are still corner to corner (drawn disjoint from another train split, so not the same ones)."""
+    plain, deep = build_splits(_data()), build_splits(_data(train_deep=1.0))
+    assert deep[1] == plain[1]
+    assert all(w.start == (w.x0, w.y0) and w.goal == (w.x1, w.y1) for w in plain[0])
+    assert sum(w.start != (w.x0, w.y0) or w.goal != (w.x1, w.y1) for w in deep[0]) > 20
+    data = _data(train_deep=1.0)
+    assert data.generator_config("train").deep == 1.0 and data.generator_config("test").deep == 0.0
+    assert all(w.start == (w.x0, w.y0) and w.goal == (w.x1, w.y1) for w in validation_worlds(data, 10, *deep))
