@@ -75,7 +75,8 @@ class PrepareStore(Callback):
 def step_hashes(job: JobSettings, seed: int, texts: TextSettings) -> dict[str, str]:
     """The identity of each step: what decides its output, and its inputs' identities."""
     digests = [None if found is None else found.sha256 for found in (job.files["test"], job.files["train"])]
-    data = config_hash("data-build", STEP_VERSIONS["data-build"], asdict(job.data), hashed(texts, asdict(texts)), *digests)
+    data = config_hash("data-build", STEP_VERSIONS["data-build"], hashed(job.data, asdict(job.data)),
+                       hashed(texts, asdict(texts)), *digests)
     hf = [f"hf {HF_FINETUNE_VERSION}"] if job.model.kind is ModelKind.hf else []
     finetune = config_hash("finetune", STEP_VERSIONS["finetune"], hashed(job.model, job.model.to_dict()),
                            hashed(job.train, job.train.to_dict()), seed, data, *hf)

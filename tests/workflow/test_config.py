@@ -221,7 +221,7 @@ def test_paper_scale_presets_compose():
 
 def test_settings_added_since_keep_the_step_hashes_of_finished_runs():
     # Settings added since (train.long_conversations, model.step_headers/positions/rope_theta, the texts'
-    # step_headers, eval.n_valid) count in a hash only when set, so a store's finished CPU-default and toy steps
+    # step_headers, eval.n_valid, data.train_deep) count in a hash only when set, so a store's finished CPU-default and toy steps
     # stay reusable: these are the hashes of the code before them (commit d5259f8). The CPU default's eval
     # scores validation worlds now (eval.n_valid=200), a new output: its eval hash is new. Change these only for
     # a change meant to rerun finished steps (README, "Step versions").
@@ -244,6 +244,7 @@ def test_settings_added_since_keep_the_step_hashes_of_finished_runs():
         assert hashes(override, toy=True)["finetune"] != "2404019bf8a1b813", override
     assert hashes("model.step_headers=plain", toy=True)["data-build"] != "128801358476e7a8"
     assert hashes("train.long_conversations=truncate", toy=True)["finetune"] != "2404019bf8a1b813"
+    assert hashes("data.train_deep=0.5", toy=True)["data-build"] != "128801358476e7a8"
 
 
 @pytest.mark.parametrize("launcher", ["local2", "slurm", "local_submitit"])
