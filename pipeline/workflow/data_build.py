@@ -81,8 +81,9 @@ class DataSettings:
     def generator_config(self, split: str) -> GeneratorConfig:
         """The generator settings of the ``train`` or ``test`` split."""
         size_x, size_y = (self.train_size_x, self.train_size_y) if split == "train" else (self.test_size_x, self.test_size_y)
-        return GeneratorConfig(size_x=tuple(size_x), size_y=tuple(size_y), frame=self.frame, p_pit=tuple(self.p_pit),
-                               generator=self.generator, deep=self.train_deep if split == "train" else 0.0)
+        return GeneratorConfig(size_x=tuple(size_x), size_y=tuple(size_y), frame=self.frame,
+                               p_pit=tuple(self.p_pit), generator=self.generator,
+                               deep=self.train_deep if split == "train" else 0.0)
 
 
 @dataclass(frozen=True)

@@ -148,7 +148,8 @@ def test_line_kinds_name_every_golden_line_and_number_the_moves():
     golden = golden_answer(WORLD, "bwd", "marking-deadend", "optimal").split("\n")
     kinds = line_kinds(WORLD, "bwd", "marking-deadend")
     assert len(kinds) == len(golden)
-    assert [kind for kind, _ in kinds if kind == "label"] == ["label"] * len(label_kinds(WORLD, "bwd", "marking-deadend"))
+    labels = label_kinds(WORLD, "bwd", "marking-deadend")
+    assert [kind for kind, _ in kinds if kind == "label"] == ["label"] * len(labels)
     backtrack = golden[golden.index("Backtrack:") + 1: golden.index("Plan:")]
     plan = golden[golden.index("Plan:") + 1:]
     tail = kinds[golden.index("Backtrack:") + 1:]

@@ -103,7 +103,8 @@ def test_the_finetuned_model_is_an_mlflow_model_and_inspect_shows_its_answers(tm
         run_id=job.data.tags[step_run_tag("data-build")], artifact_path=TEST_WORLDS, tracking_uri=cfg.tracking.uri))[0]
     counted = [sum(int(n) for row in block[1:] for n in re.findall(r"\(\d+/(\d+)\)", row)) for block in blocks[1:3]]
     assert [row.split()[0] for row in blocks[1][1:]] == list(NEIGHBOURS)
-    assert counted == [len(label_kinds(world, "bwd", "marking-deadend")), len(line_kinds(world, "bwd", "marking-deadend"))]
+    assert counted == [len(label_kinds(world, "bwd", "marking-deadend")),
+                       len(line_kinds(world, "bwd", "marking-deadend"))]
     assert {row[:14].strip() for row in blocks[2][1:]} <= set(PROBE_KINDS)
     with pytest.raises(SystemExit):
         inspect_main([eval_id, "--labels", "--world", "1", "--tracking-uri", cfg.tracking.uri])

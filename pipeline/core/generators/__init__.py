@@ -12,5 +12,5 @@ from pipeline.core.generators.base import (GENERATORS, GeneratorConfig, check_de
                                            sample_world, world_rng)
 from pipeline.core.generators.stats import WorldStats, world_stats
 
-__all__ = ["GENERATORS", "GeneratorConfig", "WorldStats", "check_deep", "check_ranges", "generate_worlds", "sample_world",
-           "world_rng", "world_stats"]
+__all__ = ["GENERATORS", "GeneratorConfig", "WorldStats", "check_deep", "check_ranges", "generate_worlds",
+           "sample_world", "world_rng", "world_stats"]

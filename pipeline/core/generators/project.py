@@ -26,7 +26,7 @@ def sample_world_project(rng: random.Random, cfg: GeneratorConfig) -> World:
         tree, start, goal = None, 0, size_x * size_y - 1
         while tree is None:
             # The goal gets walled in by the tree in some draws: grow again, the stream continuing.
-            tree = _grow_tree(rng, size_x, size_y)
+            tree = _grow_tree(rng, size_x, size_y, start, goal)
     obstacles = [i for i, in_tree in enumerate(tree) if not in_tree]
     # Shuffled like the paper's own files, whose obstacle lists are in no spatial order.
     rng.shuffle(obstacles)
@@ -71,16 +71,14 @@ def _farthest(rng: random.Random, tree: bytearray, size_x: int, size_y: int, ori
     return deepest[int(rng.random() * len(deepest))]
 
 
-def _grow_tree(rng: random.Random, size_x: int, size_y: int, start: int = 0, goal: int | None = -1
-               ) -> bytearray | None:
-    """Tree cells (column-major mask) grown from ``start`` until ``goal`` joins (-1: the last cell), or None if
-    the goal got cut off; with ``goal=None``, until no cell can join.
+def _grow_tree(rng: random.Random, size_x: int, size_y: int, start: int, goal: int | None) -> bytearray | None:
+    """Tree cells (column-major mask, cells by index) grown from ``start`` until ``goal`` joins, or None if the
+    goal got cut off; with ``goal=None``, until no cell can join.
 
     A cell joins only while it touches exactly one tree cell, which keeps the free cells a tree and
     so the shortest path unique.
     """
     n = size_x * size_y
-    goal = n - 1 if goal == -1 else goal
     tree = bytearray(n)
     # Tree neighbours per cell. A cell is put on the frontier list when this first becomes 1, so it
     # is listed once; tree cells only ever go above 1, so they are never listed again.
