@@ -14,6 +14,7 @@ conversations through `pipeline.lm.training.trainer.finetune`, with the default 
   ``regional``). Only when that scope is not ``none``.
 - ``default, bf16 when faster``: the same with ``bf16_when_faster`` (`pipeline.lm.training.compile.use_bf16`),
   when that picks another precision on this machine.
+- ``default, Muon``: the default with ``optimizer=muon`` (`pipeline.lm.training.optim`): what its step costs.
 - ``default, paper prompt``: the same on the same worlds with the paper's instruction turns, when ``--model``
   prompts with the task turn alone (``prompt: task``, the CPU default): tokens/s barely move, conversations/s
   is what the switch buys.
@@ -130,7 +131,7 @@ def main() -> None:
     parser.add_argument("--train", default=str(ROOT / "conf" / "train" / "cpu.yaml"), help="a train yaml")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--only", choices=("padded-fp32", "packed-fp32", "packed-bf16", "default", "when-faster",
-                                           "default, paper prompt"),
+                                           "default, paper prompt", "muon"),
                         action="append", help="run only these (repeatable)")
     args = parser.parse_args()
     if not 0 <= args.skip < args.steps:
@@ -167,22 +168,27 @@ def main() -> None:
 
     measured = [peaks(args.threads)]
     print("matmul peak before: " + ", ".join(f"{k} {v:.1f} GFLOP/s" for k, v in measured[0].items()))
-    # name: (packing, bf16, bf16_when_faster, torch_compile, prompt)
-    runs = {"padded-fp32": (False, False, False, "none", prompt), "packed-fp32": (True, False, False, "none", prompt),
-            "packed-bf16": (True, True, False, "none", prompt)}
+    # name: (packing, bf16, bf16_when_faster, torch_compile, prompt, optimizer)
+    base = train_cfg.optimizer
+    runs = {"padded-fp32": (False, False, False, "none", prompt, base),
+            "packed-fp32": (True, False, False, "none", prompt, base),
+            "packed-bf16": (True, True, False, "none", prompt, base)}
     default = f"default ({precision}, {scope} compile)" if scope != "none" else f"packed-{precision}"
     when_faster = f"default, bf16 when faster ({faster}, {scope} compile)"
     if scope != "none":
-        runs[default] = (True, train_cfg.bf16, train_cfg.bf16_when_faster, scope, prompt)
+        runs[default] = (True, train_cfg.bf16, train_cfg.bf16_when_faster, scope, prompt, base)
         if faster != precision:
-            runs[when_faster] = (True, train_cfg.bf16, True, scope, prompt)
+            runs[when_faster] = (True, train_cfg.bf16, True, scope, prompt, base)
     if "paper" in sets and prompt != "paper":
-        runs["default, paper prompt"] = (*runs[default][:4], "paper")
-    selected = {"default": default, "when-faster": when_faster}
+        runs["default, paper prompt"] = (*runs[default][:4], "paper", base)
+    muon = f"{default}, Muon"  # what the optimizer's own step costs (train.optimizer=muon)
+    if base != "muon":
+        runs[muon] = (*runs[default][:5], "muon")
+    selected = {"default": default, "when-faster": when_faster, "muon": muon}
     wanted = {selected.get(name, name) for name in args.only or runs}
     rates: dict[str, tuple[float, float]] = {}  # name: (overall, steady) real tokens/s
     per_token: dict[str, float] = {}  # name: useful training FLOPs per real token of its conversations
-    for name, (packing, bf16, bf16_when_faster, compile_scope, run_prompt) in runs.items():
+    for name, (packing, bf16, bf16_when_faster, compile_scope, run_prompt, optimizer) in runs.items():
         if name not in wanted:
             continue
         texts = sets[run_prompt]
@@ -194,7 +200,7 @@ def main() -> None:
             learning_rate=train_cfg.learning_rate, packing=packing, bf16=bf16, bf16_when_faster=bf16_when_faster,
             pad_to_multiple_of=train_cfg.pad_to_multiple_of,
             report_to=(), logging_steps=args.steps, save_steps=10 * args.steps, torch_threads=args.threads,
-            torch_compile=compile_scope,
+            torch_compile=compile_scope, optimizer=optimizer,
         )
         clock = StepClock()
         with tempfile.TemporaryDirectory() as out:

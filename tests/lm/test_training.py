@@ -65,6 +65,8 @@ def tiny_model(tokenizer):
     (dict(eval_fraction=1.0), "eval_fraction=1.0"),
     (dict(torch_threads=0), "torch_threads=0"),
     (dict(pad_to_multiple_of=0), "pad_to_multiple_of=0"),
+    (dict(optimizer="sgd"), "optimizer='sgd'.*adamw, muon"),
+    (dict(optimizer="muon", accelerate_config="fsdp.yaml"), "optimizer='muon'.*adamw when accelerate_config"),
 ])
 def test_settings_reject_bad_values(bad, match):
     with pytest.raises(ValueError, match=match):
@@ -193,9 +195,10 @@ def test_flattened_batch_is_exact_only_without_a_cache(tokenizer, conversations)
         start += n
 
 
-def test_loss_falls_and_held_out_tokens_are_learned(tokenizer, conversations, tmp_path):
+@pytest.mark.parametrize("optimizer", ["adamw", "muon"])
+def test_loss_falls_and_held_out_tokens_are_learned(tokenizer, conversations, tmp_path, optimizer):
     repeated = conversations[:2] * 24
-    settings = TrainSettings(max_steps=30, eval_fraction=0.25, **QUIET)
+    settings = TrainSettings(max_steps=30, eval_fraction=0.25, optimizer=optimizer, **QUIET)
     result = finetune(tiny_model(tokenizer), tokenizer, WORD_LEVEL_FORMAT, repeated, settings, tmp_path)
     assert result.final_loss < 0.5 * math.log(len(tokenizer))
     assert result.token_accuracy > 0.4  # chance is 1/len(tokenizer), under 0.02
@@ -328,9 +331,10 @@ class StopAt(TrainerCallback):
             control.should_training_stop = True
 
 
-def test_resume_after_interruption_matches_an_uninterrupted_run(tokenizer, conversations, tmp_path):
+@pytest.mark.parametrize("optimizer", ["adamw", "muon"])
+def test_resume_after_interruption_matches_an_uninterrupted_run(tokenizer, conversations, tmp_path, optimizer):
     """Bit for bit: Trainer restores optimizer, schedule and RNG states, and the sampler draws from torch's RNG."""
-    settings = TrainSettings(max_steps=8, **{**QUIET, "save_steps": 3})
+    settings = TrainSettings(max_steps=8, optimizer=optimizer, **{**QUIET, "save_steps": 3})
     whole = finetune(tiny_model(tokenizer), tokenizer, WORD_LEVEL_FORMAT, conversations, settings, tmp_path / "a")
     cut = finetune(tiny_model(tokenizer), tokenizer, WORD_LEVEL_FORMAT, conversations, settings, tmp_path / "b",
                    callbacks=[StopAt(4)])

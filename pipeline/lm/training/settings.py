@@ -17,6 +17,8 @@ SCHEDULERS = ("cosine", "linear", "constant", "constant_with_warmup", "cosine_wi
 # What becomes of a conversation longer than the context (model.max_length): left out, or cut to the context and
 # trained on the targets left (the paper's code: its tokenizer truncates).
 LONG_CONVERSATIONS = ("drop", "truncate")
+# Trainer's AdamW, or Muon for the decoder layers' matrices with AdamW for the rest (pipeline/lm/training/optim.py).
+OPTIMIZERS = ("adamw", "muon")
 
 
 class CompileMode(str, Enum):
@@ -74,6 +76,8 @@ class TrainSettings:
     long_conversations: str = field(default="drop", metadata={"hash_if_set": True})
     # Faster training where a CPU's bf16 is slow; it changes the numbers (README, Speed).
     bf16_when_faster: bool = field(default=False, metadata={"hash_if_set": True})
+    # `OPTIMIZERS` (the same learning rate and weight decay for both); not with accelerate_config (FSDP).
+    optimizer: str = field(default="adamw", metadata={"hash_if_set": True})
 
     def __post_init__(self) -> None:
         self.report_to = [self.report_to] if isinstance(self.report_to, str) else list(self.report_to)
@@ -101,6 +105,9 @@ class TrainSettings:
         require(self.torch_threads is None or self.torch_threads > 0, "torch_threads", self.torch_threads,
                 "a positive integer, or null to leave torch's setting")
         require(0 <= self.eval_fraction < 1, "eval_fraction", self.eval_fraction, "a fraction in [0, 1)")
+        require(self.optimizer in OPTIMIZERS, "optimizer", self.optimizer, f"one of {', '.join(OPTIMIZERS)}")
+        require(self.optimizer == "adamw" or self.accelerate_config is None, "optimizer", self.optimizer,
+                "adamw when accelerate_config is set (FSDP shards the matrices Muon orthogonalizes)")
         require(self.long_conversations in LONG_CONVERSATIONS, "long_conversations", self.long_conversations,
                 f"one of {', '.join(LONG_CONVERSATIONS)}")
 

@@ -27,6 +27,7 @@ from pipeline.lm.training.batches import (
     ConversationDataset, LengthGroupedBatches, RightPadCollator, split_eval, tokenize_conversations,
 )
 from pipeline.lm.training.compile import compiled_blocks, dynamo_environment, use_bf16
+from pipeline.lm.training.optim import build_optimizer
 from pipeline.lm.training.result import CHECKPOINTS_DIR, MODEL_DIR, TrainResult
 from pipeline.lm.training.settings import CompileMode, TrainSettings
 
@@ -212,6 +213,8 @@ def _finetune(model, tokenizer, fmt, conversations, settings, output_dir, seed, 
                                            pad_to_multiple_of=settings.pad_to_multiple_of),
             processing_class=tokenizer,
             callbacks=list(callbacks),
+            optimizers=(build_optimizer(settings.optimizer, model, settings.learning_rate, settings.weight_decay),
+                        None),
         )
     if any(isinstance(c, ProgressCallback) for c in trainer.callback_handler.callbacks):
         trainer.remove_callback(ProgressCallback)

@@ -1,0 +1,73 @@
+import pytest
+import torch
+
+from pipeline.lm.model_settings import ModelSettings
+from pipeline.lm.models import build_scratch_model
+from pipeline.lm.tokenizer import build_word_tokenizer
+from pipeline.lm.training.optim import MuonAdamW, build_optimizer, muon_groups, orthogonalized
+
+
+@pytest.mark.parametrize("shape", [(16, 64), (64, 16), (32, 32)])
+def test_newton_schulz_takes_every_singular_value_near_one(shape):
+    update = torch.randn(*shape, generator=torch.Generator().manual_seed(0))
+    out = orthogonalized(update)
+    assert out.shape == update.shape
+    values = torch.linalg.svdvals(out)
+    assert values.min() > 0.5 and values.max() < 1.3
+    # the same singular vectors: the update's direction is kept, only its spectrum flattened
+    assert torch.nn.functional.cosine_similarity(out.flatten(), update.flatten(), dim=0) > 0.5
+
+
+@pytest.fixture(scope="module")
+def model():
+    tokenizer = build_word_tokenizer(["Grid is from (0, 0) to (1, 1). Goal: (1, 1)\nup down cut"], frame=2)
+    settings = ModelSettings(hidden_size=32, num_layers=2, num_heads=2, intermediate_size=64, max_length=64)
+    return build_scratch_model(tokenizer, settings, seed=0)
+
+
+def test_muon_takes_the_decoder_matrices_and_adamw_the_rest_each_parameter_once(model):
+    groups = muon_groups(model)
+    listed = [id(p) for g in groups for p in g["params"]]
+    assert sorted(listed) == sorted(id(p) for p in model.parameters())  # every one, once (the head is tied)
+    muon = {id(p) for p in groups[0]["params"]}
+    assert groups[0]["muon"] and all(p.ndim == 2 for p in groups[0]["params"])
+    for name, p in model.named_parameters():
+        in_layer_matrix = ".layers." in f".{name}" and p.ndim == 2
+        assert (id(p) in muon) == in_layer_matrix, name
+    assert groups[-1]["weight_decay"] == 0.0 and all(p.ndim == 1 for p in groups[-1]["params"])
+
+
+def test_muon_refuses_what_is_not_a_matrix():
+    with pytest.raises(ValueError, match="2-D weight matrices only; got shapes \\[\\(3,\\)\\]"):
+        MuonAdamW([dict(params=[torch.nn.Parameter(torch.ones(3))], muon=True)], lr=1e-3)
+
+
+def test_build_optimizer_leaves_adamw_to_the_trainer_and_names_bad_choices(model):
+    assert build_optimizer("adamw", model, 1e-3, 0.0) is None
+    assert isinstance(build_optimizer("muon", model, 1e-3, 0.0), MuonAdamW)
+    with pytest.raises(ValueError, match="optimizer='adam'.*adamw, muon"):
+        build_optimizer("adam", model, 1e-3, 0.0)
+
+
+def test_the_adamw_part_steps_as_torch_adamw():
+    torch.manual_seed(0)
+    a = torch.nn.Parameter(torch.randn(4, 3))
+    b = torch.nn.Parameter(a.detach().clone())
+    ours = MuonAdamW([dict(params=[a])], lr=1e-2, weight_decay=0.1)
+    theirs = torch.optim.AdamW([b], lr=1e-2, weight_decay=0.1, betas=(0.9, 0.999), eps=1e-8)
+    for step in range(5):
+        grad = torch.randn(4, 3, generator=torch.Generator().manual_seed(step))
+        for p, opt in ((a, ours), (b, theirs)):
+            p.grad = grad.clone()
+            opt.step()
+    torch.testing.assert_close(a, b)
+
+
+def test_the_muon_step_has_the_size_of_adamws_typical_update():
+    """Matched RMS (0.2 * sqrt(max(rows, columns)) * lr): an orthogonal-ish update of RMS ~0.2 * lr."""
+    p = torch.nn.Parameter(torch.zeros(32, 128))
+    opt = MuonAdamW([dict(params=[p], muon=True)], lr=1e-2)
+    p.grad = torch.randn(32, 128, generator=torch.Generator().manual_seed(0))
+    opt.step()
+    rms = p.detach().pow(2).mean().sqrt().item()
+    assert 0.2 * 1e-2 * 0.6 < rms < 0.2 * 1e-2 * 1.3
