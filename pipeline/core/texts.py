@@ -78,15 +78,39 @@ def free_cells(world: World) -> tuple[Cell, ...]:
     return tuple(cells)
 
 
-def task_text(world: World, cells: bool = False) -> str:
+# (pits, walls) in the order a prompt lists them.
+Obstacles = tuple[tuple[Cell, ...], tuple[Cell, ...]]
+
+
+def listed_obstacles(world: World, distractors: int = 0, frame: int = 0) -> Obstacles:
+    """(pits, walls) as a prompt lists them: the world's own, or (``distractors`` > 0, for training texts; not in
+    the paper) with up to that many cells of the ``frame`` x ``frame`` square that lie outside the grid put in
+    too, each in one of the two lists at a random place. They change nothing the answer says (a cell outside
+    the grid is `cut` anyway) and make the lists as long as a larger world's, so the lookup a label needs is
+    trained on long lists. How many and which are drawn from the world alone."""
+    if not distractors:
+        return world.pits, world.walls
+    rng = random.Random(f"distractors:{distractors}:{frame}:{world.key()}")
+    outside = [(x, y) for x in range(frame) for y in range(frame)
+               if not (world.x0 <= x <= world.x1 and world.y0 <= y <= world.y1)]
+    pits, walls = list(world.pits), list(world.walls)
+    for cell in rng.sample(outside, min(rng.randint(0, distractors), len(outside))):
+        listed = pits if rng.random() < 0.5 else walls
+        listed.insert(rng.randint(0, len(listed)), cell)
+    return tuple(pits), tuple(walls)
+
+
+def task_text(world: World, cells: bool = False, obstacles: Obstacles | None = None) -> str:
     """The task part of the third human turn (docs/spec.md §2.3), ending in a newline; the observation follows.
-    ``cells``: the free cells are listed after the walls (the "cells" prompt, not in the paper)."""
+    ``cells``: the free cells are listed after the walls (the "cells" prompt, not in the paper). ``obstacles``:
+    the (pits, walls) lists to write instead of the world's own (`listed_obstacles`)."""
+    pits, walls = obstacles or (world.pits, world.walls)
     listed = f" {_listing('free cell', free_cells(world))}" if cells else ""
     return (
         f"Grid is from {cell_text((world.x0, world.y0))} to {cell_text((world.x1, world.y1))}. "
         f"Goal: {cell_text(world.goal)}\n"
         f"Current: {cell_text(world.start)}\n"
-        f"{_listing('pit', world.pits)} {_listing('wall', world.walls)}{listed}\n"
+        f"{_listing('pit', pits)} {_listing('wall', walls)}{listed}\n"
     )
 
 
@@ -100,16 +124,18 @@ def observation(world: World, cell: Cell) -> str:
     return "\n".join(lines)
 
 
-def first_human_text(world: World, cells: bool = False) -> str:
-    """The full third turn: task text (``cells``: with the free cells listed) then the observation at the start."""
-    return task_text(world, cells) + observation(world, world.start)
+def first_human_text(world: World, cells: bool = False, obstacles: Obstacles | None = None) -> str:
+    """The full third turn: task text (``cells``: with the free cells listed; ``obstacles``: see `task_text`)
+    then the observation at the start."""
+    return task_text(world, cells, obstacles) + observation(world, world.start)
 
 
-def prompt_turns(world: World, prompt: str = DEFAULT_PROMPT) -> list[dict[str, str]]:
+def prompt_turns(world: World, prompt: str = DEFAULT_PROMPT, obstacles: Obstacles | None = None) -> list[dict[str, str]]:
     """What a model is prompted with: the paper's three turns (``prompt="paper"``), the task turn alone
-    (``"task"``, the default), or the task turn alone with the free cells listed (``"cells"``)."""
+    (``"task"``, the default), or the task turn alone with the free cells listed (``"cells"``). ``obstacles``:
+    the (pits, walls) lists to write instead of the world's own (`listed_obstacles`)."""
     check_choice("prompt", prompt, PROMPTS)
-    task = {"from": "human", "value": first_human_text(world, cells=prompt == "cells")}
+    task = {"from": "human", "value": first_human_text(world, cells=prompt == "cells", obstacles=obstacles)}
     if prompt != "paper":
         return [task]
     return [{"from": "human", "value": INSTRUCTION}, {"from": "gpt", "value": ACKNOWLEDGEMENT}, task]
@@ -263,13 +289,14 @@ def _answer(world: World, direction: str, variant: str, mode: str, moves: list[s
 
 def conversation(
     world: World, direction: str, variant: str, mode: str, seed: int = 0, prompt: str = DEFAULT_PROMPT,
-    steps: str = "numbered",
+    steps: str = "numbered", obstacles: Obstacles | None = None,
 ) -> list[dict[str, str]]:
     """The whole training conversation (docs/spec.md §2): prompt, first answer and, when reachable, the walk.
-    ``prompt`` and ``steps`` choose the prompt form (`PROMPTS`) and the step headers (`STEP_HEADERS`)."""
+    ``prompt`` and ``steps`` choose the prompt form (`PROMPTS`) and the step headers (`STEP_HEADERS`);
+    ``obstacles`` the prompt's (pits, walls) lists if not the world's own (`listed_obstacles`)."""
     check(direction, variant, mode)
     moves = _moves(world, variant, seed)
-    turns = prompt_turns(world, prompt)
+    turns = prompt_turns(world, prompt, obstacles)
     turns.append({"from": "gpt", "value": _answer(world, direction, variant, mode, moves, steps)})
     if mode == "reachable":
         cell = step(world.start, moves[0])

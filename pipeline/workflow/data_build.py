@@ -18,7 +18,7 @@ import mlflow
 from tqdm import tqdm
 
 from pipeline.core.generators import GeneratorConfig, check_deep, check_ranges, generate_worlds, world_stats
-from pipeline.core.texts import DEFAULT_PROMPT, conversation
+from pipeline.core.texts import DEFAULT_PROMPT, conversation, listed_obstacles
 from pipeline.core.variants import BY_NAME, text_direction
 from pipeline.core.world import World, load_worlds, save_worlds
 from pipeline.lm.tokenizer import count_pieces, piece_set
@@ -64,6 +64,10 @@ class DataSettings:
     # ends of the free tree's longest path, so the same sides hold longer paths); validation and test stay
     # the paper's (corner to corner).
     train_deep: float = field(default=0.0, metadata={"hash_if_set": True})
+    # Not in the paper: each train prompt's pit and wall lists also hold up to this many cells of the frame
+    # outside the grid (`texts.listed_obstacles`), so the lists are as long as a larger world's; the worlds,
+    # answers, validation and test texts are unchanged.
+    train_distractors: int = field(default=0, metadata={"hash_if_set": True})
 
     def __post_init__(self) -> None:
         # As lists, so a message writes a range the same way whether it came as a list, a tuple or from the config.
@@ -72,6 +76,8 @@ class DataSettings:
         check_deep(self.generator, self.train_deep, "train_deep")
         for name in ("n_train", "n_test", "workers"):
             require(getattr(self, name) >= 1, name, getattr(self, name), "at least 1")
+        require(isinstance(self.train_distractors, int) and self.train_distractors >= 0, "train_distractors",
+                self.train_distractors, "an integer >= 0 (0: the world's own lists)")
 
     @property
     def train_max(self) -> tuple[int, int]:
@@ -201,12 +207,14 @@ def _write_jsonl(path: Path, rows: Iterable[dict]) -> None:
             handle.write(json.dumps(row, separators=(", ", ": ")) + "\n")
 
 
-def _conversations(worlds: list[World], spec: TextSettings, desc: str) -> Iterable[dict]:
+def _conversations(worlds: list[World], spec: TextSettings, desc: str, distractors: int = 0, frame: int = 0
+                   ) -> Iterable[dict]:
     direction = spec.direction or "fwd"
     for index, world in enumerate(tqdm(worlds, desc=desc, unit="world", leave=False)):
         # Each world's DFS walk gets its own seed, so the walks do not depend on the split's order.
         turns = conversation(world, direction, spec.variant, spec.mode, seed=spec.seed * 1_000_003 + index,
-                             prompt=spec.prompt, steps=spec.step_headers)
+                             prompt=spec.prompt, steps=spec.step_headers,
+                             obstacles=listed_obstacles(world, distractors, frame) if distractors else None)
         yield {"id": index, "conversations": turns}
 
 
@@ -214,8 +222,10 @@ def _summary(values: list[int]) -> dict:
     return {"mean": statistics.fmean(values), "max": max(values), "min": min(values)} if values else {}
 
 
-def write_dataset(out_dir: str | Path, train: list[World], test: list[World], spec: TextSettings, train_max: tuple[int, int]) -> dict:
-    """Write worlds, conversations and stats under ``out_dir``; return the summary (also written)."""
+def write_dataset(out_dir: str | Path, train: list[World], test: list[World], spec: TextSettings,
+                  train_max: tuple[int, int], distractors: int = 0, frame: int = 0) -> dict:
+    """Write worlds, conversations and stats under ``out_dir``; return the summary (also written).
+    ``distractors``, ``frame``: the train prompts' extra obstacle-list cells (`DataSettings.train_distractors`)."""
     out = Path(out_dir)
     (out / "worlds").mkdir(parents=True, exist_ok=True)
     save_worlds(out / TRAIN_WORLDS, train)
@@ -236,7 +246,7 @@ def write_dataset(out_dir: str | Path, train: list[World], test: list[World], sp
             test_words.append(frozenset().union(*(piece_set(turn["value"]) for turn in row["conversations"])))
             yield row
 
-    _write_jsonl(out / TRAIN_CONVERSATIONS, measured(_conversations(train, spec, "train texts")))
+    _write_jsonl(out / TRAIN_CONVERSATIONS, measured(_conversations(train, spec, "train texts", distractors, frame)))
     train_tokens = list(token_lengths)
     # Test conversations are the golden references (the model is prompted with their turns before the first answer).
     _write_jsonl(out / TEST_CONVERSATIONS, words_of(_conversations(test, spec, "test texts")))
@@ -303,7 +313,7 @@ def run_data_build(settings: DataSettings, texts: TextSettings, files: dict[str,
             mlflow.set_tags({f"{split}_file": str(found.path), f"{split}_file_sha256": found.sha256})
     train, test = build_splits(settings, files)
     out = step_dir / "dataset"
-    summary = write_dataset(out, train, test, texts, settings.train_max)
+    summary = write_dataset(out, train, test, texts, settings.train_max, settings.train_distractors, settings.frame)
     mlflow.set_tag("dataset_sha256", summary["sha256"])
     mlflow.log_metrics({
         "n_train": summary["n_train"], "n_test": summary["n_test"],

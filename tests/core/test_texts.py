@@ -6,7 +6,7 @@ import re
 
 import pytest
 from conftest import worlds
-from hypothesis import given
+from hypothesis import given, strategies as st
 
 from pipeline import World, conversation
 from pipeline.core.variants import BASELINES, DIRECTIONS, MAP_VARIANTS, MODES, PAPER_MAP_VARIANTS, PAPER_VARIANTS, VARIANTS
@@ -19,6 +19,7 @@ from pipeline.core.texts import (
     cot_thought,
     dfs_moves,
     free_cells,
+    listed_obstacles,
     is_step_header,
     observation,
     prompt_turns,
@@ -249,6 +250,35 @@ def test_cells_prompt_golden(example_world, golden):
     for mode in MODES:
         assert conversation(example_world, "bwd", "marking-deadend", mode, prompt="cells")[1:] == \
             conversation(example_world, "bwd", "marking-deadend", mode, prompt="task")[1:]
+
+
+def test_distractors_golden(example_world, golden):
+    """`listed_obstacles` with distractors (not in the paper; train prompts only): cells of the frame outside the
+    grid join the pit and wall lists at places drawn from the world alone; the answers do not change."""
+    obstacles = listed_obstacles(example_world, 6, 6)
+    assert obstacles == (((4, 3), (3, 0)), ((1, 4), (1, 5), (1, 1), (2, 5), (0, 3), (2, 2)))
+    [turn] = prompt_turns(example_world, "task", obstacles)
+    assert turn["value"] == golden["turn_3"].replace(
+        "The pit is at (3, 0). The wall is at (1, 1), and (2, 2).",
+        "The pit is at (4, 3), and (3, 0). The wall is at (1, 4), (1, 5), (1, 1), (2, 5), (0, 3), and (2, 2).")
+    assert listed_obstacles(example_world, 0, 6) == (example_world.pits, example_world.walls)
+    for mode in MODES:
+        assert conversation(example_world, "bwd", "marking-deadend", mode, obstacles=obstacles)[1:] == \
+            conversation(example_world, "bwd", "marking-deadend", mode)[1:]
+
+
+@given(worlds(), st.integers(0, 12))
+def test_distractors_are_frame_cells_outside_the_grid_added_to_the_worlds_own_lists(world, most):
+    pits, walls = listed_obstacles(world, most, 8)
+    assert listed_obstacles(world, most, 8) == (pits, walls)   # drawn from the world alone
+    extra = [c for c in (*pits, *walls) if c not in world.pits and c not in world.walls]
+    assert len(extra) == len(pits) + len(walls) - len(world.pits) - len(world.walls) <= most
+    assert len(set(extra)) == len(extra)
+    for x, y in extra:
+        assert 0 <= x < 8 and 0 <= y < 8 and not (world.x0 <= x <= world.x1 and world.y0 <= y <= world.y1)
+    # the world's own obstacles keep their lists and their order
+    assert [c for c in pits if c in world.pits] == list(world.pits)
+    assert [c for c in walls if c in world.walls] == list(world.walls)
 
 
 @given(worlds())

@@ -178,9 +178,9 @@ def test_the_extrapolation_study_runs_each_lever_alone_with_two_seeds_on_the_def
     levers = params["+lever"].split(",")
     assert sorted(levers) == sorted(p.stem for p in (SWEEPS / "lever").glob("*.yaml"))
     def flat(job) -> dict:
-        """The job's data and model settings and its named switch, as dotted keys."""
+        """The job's data, model and train settings and its named switch, as dotted keys."""
         tree = OmegaConf.to_container(job, resolve=False)
-        return {"named": tree["named"], **{f"{section}.{key}": value for section in ("data", "model")
+        return {"named": tree["named"], **{f"{section}.{key}": value for section in ("data", "model", "train")
                                             for key, value in tree[section].items()}}
 
     default = flat(_compose(["+lever=default"], name="extrapolation", sweeps=True))
@@ -191,7 +191,8 @@ def test_the_extrapolation_study_runs_each_lever_alone_with_two_seeds_on_the_def
         assert job.eval.n_valid == 200 and job.train.max_steps == 5000 and job.threads == 1
         changed[lever] = sorted(key for key, value in flat(job).items() if value != default[key])
     assert changed == {"default": [], "named": ["named"], "plain": ["model.step_headers"],
-                       "cells": ["model.prompt"], "deep": ["data.train_deep"], "alternate": ["model.positions"]}
+                       "cells": ["model.prompt"], "deep": ["data.train_deep"], "alternate": ["model.positions"],
+                       "distractors": ["data.train_distractors"], "muon": ["train.optimizer"]}
 
 
 def test_cpu_study_is_the_optimal_half_of_table_1_with_two_seeds_where_asked():
@@ -246,6 +247,8 @@ def test_settings_added_since_keep_the_step_hashes_of_finished_runs():
     assert hashes("model.step_headers=plain", toy=True)["data-build"] != "128801358476e7a8"
     assert hashes("train.long_conversations=truncate", toy=True)["finetune"] != "2404019bf8a1b813"
     assert hashes("data.train_deep=0.5", toy=True)["data-build"] != "128801358476e7a8"
+    assert hashes("data.train_distractors=8", toy=True)["data-build"] != "128801358476e7a8"
+    assert hashes("train.optimizer=muon", toy=True)["finetune"] != "2404019bf8a1b813"
 
 
 @pytest.mark.parametrize("launcher", ["local2", "slurm", "local_submitit"])

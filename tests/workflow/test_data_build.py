@@ -119,6 +119,26 @@ def test_validation_worlds_follow_the_test_sizes_and_are_disjoint_from_both_spli
     assert any(w.size_x > 4 or w.size_y > 4 for w in valid)  # the test distribution, not the training one
 
 
+def test_distractors_change_the_train_prompts_only(tmp_path):
+    """`train_distractors` (not in the paper): the same worlds; train prompts list extra obstacles outside the
+    grid, train answers and every test text are as they were; a data setting at its default changes nothing."""
+    data = _data(train_distractors=8)
+    assert build_splits(data) == build_splits(_data())
+    train, test = build_splits(data)
+    spec = TextSettings.of("bwd", "marking-deadend", "optimal")
+    write_dataset(tmp_path / "plain", train, test, spec, (4, 4))
+    write_dataset(tmp_path / "again", train, test, spec, (4, 4), 0, 6)
+    write_dataset(tmp_path / "extra", train, test, spec, (4, 4), 8, 6)
+    assert dataset_sha256(tmp_path / "plain") == dataset_sha256(tmp_path / "again")
+    assert (tmp_path / "plain" / TEST_CONVERSATIONS).read_bytes() == (tmp_path / "extra" / TEST_CONVERSATIONS).read_bytes()
+    plain, extra = (read_conversations(tmp_path / name / TRAIN_CONVERSATIONS) for name in ("plain", "extra"))
+    assert [c[1:] for c in plain] == [c[1:] for c in extra]
+    longer = [len(b[0]["value"]) - len(a[0]["value"]) for a, b in zip(plain, extra)]
+    assert min(longer) >= 0 and sum(n > 0 for n in longer) > len(longer) // 2
+    with pytest.raises(ValueError, match="train_distractors=-1 is not allowed; expected an integer >= 0"):
+        _data(train_distractors=-1)
+
+
 def test_deep_train_worlds_leave_the_test_and_validation_splits_as_they_were():
     """`train_deep` (not in the paper) draws deep train worlds only: the test split is the same, validation
     worlds are still corner to corner (drawn disjoint from another train split, so not the same ones)."""
