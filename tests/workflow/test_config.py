@@ -191,8 +191,8 @@ def test_the_extrapolation_study_runs_each_lever_alone_with_two_seeds_on_the_def
         assert job.eval.n_valid == 200 and job.train.max_steps == 5000 and job.threads == 1
         changed[lever] = sorted(key for key, value in flat(job).items() if value != default[key])
     assert changed == {"default": [], "named": ["named"], "plain": ["model.step_headers"],
-                       "cells": ["model.prompt"], "deep": ["data.train_deep"], "alternate": ["model.positions"],
-                       "distractors": ["data.train_distractors"], "muon": ["train.optimizer"]}
+                       "cells": ["model.prompt"], "corner": ["data.train_deep"], "alternate": ["model.positions"],
+                       "distractors": ["data.train_distractors"], "adamw": ["train.optimizer"]}
 
 
 def test_cpu_study_is_the_optimal_half_of_table_1_with_two_seeds_where_asked():
@@ -237,9 +237,13 @@ def test_settings_added_since_keep_the_step_hashes_of_finished_runs():
                                 prompt=job.model.prompt, step_headers=job.model.step_headers)
         return step_hashes(job, cfg.seed, texts)
 
-    assert hashes("eval.n_valid=0", toy=False) == {"data-build": "9084abe767f5f3cf", "finetune": "9f74feb50b9e71d8",
-                                                  "eval": "7a5f1b9983e9f635"}
-    assert hashes(toy=False)["eval"] != "7a5f1b9983e9f635"
+    old_default = ("data.train_deep=0", "train.optimizer=adamw", "train.bf16_when_faster=false")
+    assert hashes("eval.n_valid=0", *old_default, toy=False) == {
+        "data-build": "9084abe767f5f3cf", "finetune": "9f74feb50b9e71d8", "eval": "7a5f1b9983e9f635"}
+    assert hashes(*old_default, toy=False)["eval"] != "7a5f1b9983e9f635"
+    # The CPU default's recipe since (Muon, half the train worlds deep, bf16 only where faster): new steps.
+    new = hashes(toy=False)
+    assert new["data-build"] != "9084abe767f5f3cf" and new["finetune"] != "9f74feb50b9e71d8"
     assert hashes(toy=True) == {"data-build": "128801358476e7a8", "finetune": "2404019bf8a1b813",
                                 "eval": "4141ac65b7504e8f"}
     for override in ("model.step_headers=plain", "model.positions=nope", "model.rope_theta=100"):
