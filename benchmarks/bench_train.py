@@ -14,7 +14,8 @@ conversations through `pipeline.lm.training.trainer.finetune`, with the default 
   ``regional``). Only when that scope is not ``none``.
 - ``default, bf16 when faster``: the same with ``bf16_when_faster`` (`pipeline.lm.training.compile.use_bf16`),
   when that picks another precision on this machine.
-- ``default, Muon``: the default with ``optimizer=muon`` (`pipeline.lm.training.optim`): what its step costs.
+- ``default, <optimizer>``: the default with the other ``optimizer`` (``adamw`` or ``muon``,
+  `pipeline.lm.training.optim`): what Muon's step costs against AdamW's.
 - ``default, paper prompt``: the same on the same worlds with the paper's instruction turns, when ``--model``
   prompts with the task turn alone (``prompt: task``, the CPU default): tokens/s barely move, conversations/s
   is what the switch buys.
@@ -131,7 +132,7 @@ def main() -> None:
     parser.add_argument("--train", default=str(ROOT / "conf" / "train" / "cpu.yaml"), help="a train yaml")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--only", choices=("padded-fp32", "packed-fp32", "packed-bf16", "default", "when-faster",
-                                           "default, paper prompt", "muon"),
+                                           "default, paper prompt", "other-optimizer"),
                         action="append", help="run only these (repeatable)")
     args = parser.parse_args()
     if not 0 <= args.skip < args.steps:
@@ -181,10 +182,11 @@ def main() -> None:
             runs[when_faster] = (True, train_cfg.bf16, True, scope, prompt, base)
     if "paper" in sets and prompt != "paper":
         runs["default, paper prompt"] = (*runs[default][:4], "paper", base)
-    muon = f"{default}, Muon"  # what the optimizer's own step costs (train.optimizer=muon)
-    if base != "muon":
-        runs[muon] = (*runs[default][:5], "muon")
-    selected = {"default": default, "when-faster": when_faster, "muon": muon}
+    # What the optimizer's own step costs: the default with the other optimizer (train.optimizer).
+    other = "adamw" if base == "muon" else "muon"
+    other_optimizer = f"{default}, {other}"
+    runs[other_optimizer] = (*runs[default][:5], other)
+    selected = {"default": default, "when-faster": when_faster, "other-optimizer": other_optimizer}
     wanted = {selected.get(name, name) for name in args.only or runs}
     rates: dict[str, tuple[float, float]] = {}  # name: (overall, steady) real tokens/s
     per_token: dict[str, float] = {}  # name: useful training FLOPs per real token of its conversations
