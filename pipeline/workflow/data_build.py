@@ -214,7 +214,7 @@ def _conversations(worlds: list[World], spec: TextSettings, desc: str, distracto
         # Each world's DFS walk gets its own seed, so the walks do not depend on the split's order.
         turns = conversation(world, direction, spec.variant, spec.mode, seed=spec.seed * 1_000_003 + index,
                              prompt=spec.prompt, steps=spec.step_headers,
-                             obstacles=listed_obstacles(world, distractors, frame) if distractors else None)
+                             obstacles=listed_obstacles(world, distractors, frame))
         yield {"id": index, "conversations": turns}
 
 
