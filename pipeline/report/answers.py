@@ -3,7 +3,8 @@
 RUN_ID is a job run or its eval run. For each episode shown: the world and the outcome, the task prompt,
 and the model's answer beside the golden one (rebuilt from the world), the first differing line marked; in
 the reachable setting, the model's answer of every turn after the observation it answered. With
-``--labels``: the job's model graded on every line of every test world's golden answer (`probe_labels`).
+``--labels``: the job's model graded on every line of every validation world's golden answer (`probe_labels`;
+``--split test``: the test worlds').
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from pipeline.core.scoring import _as_text, first_difference
 from pipeline.core.texts import golden_answer, first_human_text
 from pipeline.core.variants import MAP_VARIANTS, VARIANTS
 from pipeline.report.cli import add_store_arguments, store_of
-from pipeline.workflow.tracking import EPISODES_ARTIFACT, JOB_KIND, KIND_TAG, step_run_tag
+from pipeline.workflow.tracking import EPISODES_ARTIFACT, JOB_KIND, KIND_TAG, VALID_EPISODES_ARTIFACT, step_run_tag
 from pipeline.core.world import World, load_worlds
 
 WIDTH = 30
@@ -140,10 +141,15 @@ def inspect_run(tracking_uri: str, run_id: str, world: int | None = None, failed
                                 for r in chosen)]) + "\n"
 
 
-def probe_labels(tracking_uri: str, run_id: str, limit: int | None = None) -> str:
-    """The text of ``python -m pipeline.inspect RUN_ID --labels``: the job's model, fed each test world's golden
+PROBE_SPLITS = ("valid", "test")
+
+
+def probe_labels(tracking_uri: str, run_id: str, limit: int | None = None, split: str = "valid") -> str:
+    """The text of ``python -m pipeline.inspect RUN_ID --labels``: the job's model, fed each world's golden
     answer, graded on every line (`pipeline.lm.probe`): the map's labels by what the neighbour is, every line by
-    its kind, and the Backtrack's and Plan's moves by their index; inside the training sizes and beyond them."""
+    its kind, and the Backtrack's and Plan's moves by their index; inside the training sizes and beyond them.
+    ``split``: the validation worlds (the default: a diagnosis that picks the next lever reads them, never the
+    test split) or the test worlds."""
     from mlflow.tracking import MlflowClient
 
     from pipeline.core.map_errors import NEIGHBOURS, PROBE_KINDS, label_kinds, line_kinds
@@ -157,12 +163,22 @@ def probe_labels(tracking_uri: str, run_id: str, limit: int | None = None) -> st
     variant = tags.get("variant", "")
     if variant not in MAP_VARIANTS:
         raise InspectError(f"job {job.info.run_id} has variant {variant!r}: --labels grades a cognitive map's labels")
+    if split not in PROBE_SPLITS:
+        raise InspectError(f"split {split!r}: one of {', '.join(PROBE_SPLITS)}")
     with tempfile.TemporaryDirectory() as scratch:
         data_id = tags[step_run_tag("data-build")]
         worlds = load_worlds(client.download_artifacts(data_id, TEST_WORLDS, scratch))
         spec = json.loads(Path(client.download_artifacts(data_id, SUMMARY, scratch)).read_text()).get("text_spec") or {}
-        path = client.download_artifacts(evaluation.info.run_id, EPISODES_ARTIFACT, scratch)
+        episodes = EPISODES_ARTIFACT if split == "test" else VALID_EPISODES_ARTIFACT
+        if split == "valid":
+            if not any(entry.path == episodes for entry in client.list_artifacts(evaluation.info.run_id)):
+                raise InspectError(f"eval run {evaluation.info.run_id} has no validation episodes (eval.n_valid=0); "
+                                   "--split test grades the test worlds")
+            worlds = _validation_worlds(client, job.info.run_id, data_id, worlds, scratch)
+        path = client.download_artifacts(evaluation.info.run_id, episodes, scratch)
         records = [json.loads(line) for line in Path(path).read_text().splitlines() if line.strip()]
+        if split == "valid":
+            _check_same_worlds(worlds, records)
         model_dir = client.download_artifacts(tags[step_run_tag("finetune")], "model", scratch)
         model, tokenizer = load_model(model_dir).eval(), load_tokenizer(model_dir)
         fmt = load_chat_format(model_dir)
@@ -182,7 +198,7 @@ def probe_labels(tracking_uri: str, run_id: str, limit: int | None = None) -> st
             _tally(lines, (inside, kind), ok)
             if move is not None and not inside:
                 _tally(moves, (kind, move), ok)
-    head = (f"job {job.info.run_id} · {direction} {variant} · {len(records[:limit])} test worlds, each fed its "
+    head = (f"job {job.info.run_id} · {direction} {variant} · {len(records[:limit])} {SPLIT_NAMES[split]}, each fed its "
             "golden answer: lines predicted (greedy, every token of the line), 95% Wilson interval")
     rows = [head, "", f"{'label of a':<14} {'inside the training sizes':<34} beyond them"]
     rows += [f"{kind:<14} {_rate(labels, (True, kind)):<34} {_rate(labels, (False, kind))}" for kind in NEIGHBOURS]
@@ -196,6 +212,33 @@ def probe_labels(tracking_uri: str, run_id: str, limit: int | None = None) -> st
         rows += [f"{move + 1:<6} {_rate(moves, ('backtrack move', move)):<34} {_rate(moves, ('plan', move))}"
                  for move in range(last)]
     return "\n".join(rows) + "\n"
+
+
+SPLIT_NAMES = {"valid": "validation worlds", "test": "test worlds"}
+
+
+def _validation_worlds(client, job_id: str, data_id: str, test: list[World], scratch: str) -> list[World]:
+    """The job's validation worlds, drawn again as its eval step drew them (`validation_worlds`), from the
+    settings in the job's config.json."""
+    from omegaconf import OmegaConf
+
+    from pipeline.workflow.data_build import TRAIN_WORLDS, DataSettings, validation_worlds
+
+    config = json.loads(Path(client.download_artifacts(job_id, "config.json", scratch)).read_text())
+    data = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(DataSettings), config["data"]))
+    train = load_worlds(client.download_artifacts(data_id, TRAIN_WORLDS, scratch))
+    return validation_worlds(data, int(config["eval"]["n_valid"]), train, test)
+
+
+def _check_same_worlds(worlds: list[World], records: list[dict]) -> None:
+    """The worlds drawn again are the ones the validation episodes were scored on (sizes and path lengths)."""
+    for record in records:
+        index = record["world_index"]
+        drawn = worlds[index] if index < len(worlds) else None
+        if drawn is None or (drawn.size_x, drawn.size_y, len(drawn.optimal_moves())) != (
+                record["size_x"], record["size_y"], record["optimal_length"]):
+            raise InspectError(f"validation world {index} drawn again differs from the one the eval step scored "
+                               "(another version of the generator?); --split test grades the test worlds")
 
 
 def _tally(counts: dict, key, ok: bool) -> None:
@@ -220,10 +263,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--world", type=int, help="the test world's index (default: the first few)")
     parser.add_argument("--failed", action="store_true", help="only episodes that failed")
     parser.add_argument("--limit", type=int, help="how many episodes without --world (default 3; with --labels: "
-                                                   "how many test worlds, default all)")
+                                                   "how many worlds, default all)")
     parser.add_argument("--labels", action="store_true",
-                        help="grade the model on every line of every test world's golden answer (a teacher-forced "
-                             "probe: labels by neighbour, lines by kind, moves by number)")
+                        help="grade the model on every line of every validation world's golden answer (a "
+                             "teacher-forced probe: labels by neighbour, lines by kind, moves by number)")
+    parser.add_argument("--split", choices=PROBE_SPLITS, default="valid",
+                        help="with --labels: the worlds graded (default valid: recipes are chosen on them)")
     add_store_arguments(parser)
     args = parser.parse_intermixed_args(argv)  # tracking.root=DIR may follow the options
     if args.labels and (args.world is not None or args.failed):
@@ -231,7 +276,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     tracking_uri, _ = store_of(parser, args)
     try:  # the error exit every command line of the project shares (boilerplate)
         if args.labels:
-            print(probe_labels(tracking_uri, args.run_id, args.limit), end="")
+            print(probe_labels(tracking_uri, args.run_id, args.limit, args.split), end="")
         else:
             limit = 3 if args.limit is None else args.limit
             print(inspect_run(tracking_uri, args.run_id, args.world, args.failed, limit), end="")

@@ -9,6 +9,7 @@ from pathlib import Path
 import mlflow
 import pytest
 import torch
+from omegaconf import OmegaConf
 from safetensors.torch import load_file
 from conftest import ROOT, compose_job
 
@@ -69,7 +70,7 @@ def test_the_finetuned_model_is_an_mlflow_model_and_inspect_shows_its_answers(tm
 
     from pipeline.report.answers import inspect_run, main as inspect_main
 
-    cfg = _cfg(tmp_path, "variant=marking-deadend", "eval.n_worlds=2")
+    cfg = _cfg(tmp_path, "variant=marking-deadend", "eval.n_worlds=2", "eval.n_valid=2")
     run_job(cfg)
     job = _job_runs(cfg)[0]
     finetune_id = job.data.tags[step_run_tag("finetune")]
@@ -96,16 +97,34 @@ def test_the_finetuned_model_is_an_mlflow_model_and_inspect_shows_its_answers(tm
     # labels of the first world's golden answer, then a row per kind of line with counts that add up to its lines.
     from pipeline.core.map_errors import NEIGHBOURS, PROBE_KINDS, label_kinds, line_kinds
     from pipeline.core.world import load_worlds
-    from pipeline.report.answers import probe_labels
+    from pipeline.report.answers import InspectError, probe_labels
 
-    blocks = [block.splitlines() for block in probe_labels(cfg.tracking.uri, job.info.run_id, limit=1).split("\n\n")]
-    world = load_worlds(mlflow.artifacts.download_artifacts(
-        run_id=job.data.tags[step_run_tag("data-build")], artifact_path=TEST_WORLDS, tracking_uri=cfg.tracking.uri))[0]
-    counted = [sum(int(n) for row in block[1:] for n in re.findall(r"\(\d+/(\d+)\)", row)) for block in blocks[1:3]]
-    assert [row.split()[0] for row in blocks[1][1:]] == list(NEIGHBOURS)
-    assert counted == [len(label_kinds(world, "bwd", "marking-deadend")),
-                       len(line_kinds(world, "bwd", "marking-deadend"))]
-    assert {row[:14].strip() for row in blocks[2][1:]} <= set(PROBE_KINDS)
+    from pipeline.workflow.data_build import TRAIN_WORLDS, DataSettings, validation_worlds
+
+    def counted(text):
+        blocks = [block.splitlines() for block in text.split("\n\n")]
+        assert [row.split()[0] for row in blocks[1][1:]] == list(NEIGHBOURS)
+        assert {row[:14].strip() for row in blocks[2][1:]} <= set(PROBE_KINDS)
+        return [sum(int(n) for row in block[1:] for n in re.findall(r"\(\d+/(\d+)\)", row)) for block in blocks[1:3]]
+
+    def artifact(name):
+        return load_worlds(mlflow.artifacts.download_artifacts(
+            run_id=job.data.tags[step_run_tag("data-build")], artifact_path=name, tracking_uri=cfg.tracking.uri))
+
+    # By default the validation worlds (drawn again as the eval step drew them); --split test: the test worlds.
+    test = artifact(TEST_WORLDS)
+    data = OmegaConf.to_object(cfg.data)
+    valid = validation_worlds(data, 2, artifact(TRAIN_WORLDS), test)[0]
+    graded = probe_labels(cfg.tracking.uri, job.info.run_id, limit=1)
+    assert "1 validation worlds, each fed" in graded
+    assert counted(graded) == [len(label_kinds(valid, "bwd", "marking-deadend")),
+                               len(line_kinds(valid, "bwd", "marking-deadend"))]
+    graded = probe_labels(cfg.tracking.uri, job.info.run_id, limit=1, split="test")
+    assert "1 test worlds, each fed" in graded
+    with pytest.raises(InspectError, match="'train': one of valid, test"):
+        probe_labels(cfg.tracking.uri, job.info.run_id, split="train")
+    assert counted(graded) == [len(label_kinds(test[0], "bwd", "marking-deadend")),
+                               len(line_kinds(test[0], "bwd", "marking-deadend"))]
     with pytest.raises(SystemExit):
         inspect_main([eval_id, "--labels", "--world", "1", "--tracking-uri", cfg.tracking.uri])
     from pipeline.report.build import main as report_main
