@@ -24,6 +24,9 @@ LOG_MODEL_CHOICES = ("transformers", "reference")
 # mask alone tells order; Kazemnejad et al. 2023), or in every other layer starting with the first
 # ("alternate"). The last two build transformers' SmolLM3, a Llama with per-layer RoPE switches.
 POSITIONS = ("rope", "nope", "alternate")
+# How the word-level tokenizer cuts a number outside a cell (pipeline.lm.tokenizer.NUMBER_PIECES): one piece, or
+# one piece a digit.
+NUMBERS = ("whole", "digits")
 
 
 class ModelKind(str, Enum):
@@ -57,6 +60,8 @@ class ModelSettings:
     # How the answers' step headers are written (pipeline.core.texts.STEP_HEADERS): the paper's `Step k:`, or
     # `Step:` (plain: no number word that larger test worlds would need and training never shows).
     step_headers: str = field(default="numbered", metadata={"hash_if_set": True})
+    # NUMBERS (scratch models): `digits` makes a step number larger than training shows of trained pieces.
+    numbers: str = field(default="whole", metadata={"hash_if_set": True})
     positions: str = field(default="rope", metadata={"hash_if_set": True})   # POSITIONS; scratch models only
     # RoPE's base (scratch models): 10000 is Llama's. A small base turns even the slowest rotary pair through
     # whole periods within the training lengths, so a longer test sequence meets no angle training never saw.
@@ -75,6 +80,7 @@ class ModelSettings:
                 self.attn_implementation, f"one of {', '.join(ATTENTION_IMPLEMENTATIONS)}")
         require(self.prompt in PROMPTS, "prompt", self.prompt, f"one of {', '.join(PROMPTS)}")
         require(self.step_headers in STEP_HEADERS, "step_headers", self.step_headers, f"one of {', '.join(STEP_HEADERS)}")
+        require(self.numbers in NUMBERS, "numbers", self.numbers, f"one of {', '.join(NUMBERS)}")
         require(self.positions in POSITIONS, "positions", self.positions, f"one of {', '.join(POSITIONS)}")
         require(self.rope_theta > 1, "rope_theta", self.rope_theta, "a base above 1")
         require(self.positions == "rope" or self.kind is ModelKind.scratch, "positions", self.positions,

@@ -103,15 +103,18 @@ class TextSettings:
     prompt: str = DEFAULT_PROMPT   # texts.PROMPTS: the paper's three prompt turns, or the task turn alone
     # texts.STEP_HEADERS: `Step k:` (the paper's) or `Step:`; in the data-build hash only when set.
     step_headers: str = field(default="numbered", metadata={"hash_if_set": True})
+    # How the word-level tokenizer cuts numbers (ModelSettings.numbers): not the texts, but the pieces the
+    # summary counts (tokens, untrained words); in the data-build hash only when set.
+    numbers: str = field(default="whole", metadata={"hash_if_set": True})
 
     @classmethod
     def of(cls, direction: str, variant: str, mode: str, seed: int = 0, prompt: str = DEFAULT_PROMPT,
-           step_headers: str = "numbered") -> "TextSettings":
+           step_headers: str = "numbered", numbers: str = "whole") -> "TextSettings":
         # Direction-free variants (NONE, DFS): both directions share one dataset (and model). Step headers
         # matter only where a Thought has them (maps and CoT).
         if BY_NAME[variant].direction_free:
             step_headers = "numbered"
-        return cls(text_direction(direction, variant), variant, mode, seed, prompt, step_headers)
+        return cls(text_direction(direction, variant), variant, mode, seed, prompt, step_headers, numbers)
 
 
 def world_file(data: DataSettings, split: str) -> ResolvedFile | None:
@@ -236,14 +239,15 @@ def write_dataset(out_dir: str | Path, train: list[World], test: list[World], sp
 
     def measured(rows: Iterable[dict]) -> Iterable[dict]:
         for row in rows:
-            token_lengths.append(sum(count_pieces(turn["value"]) + 2 for turn in row["conversations"]))
+            token_lengths.append(sum(count_pieces(turn["value"], spec.numbers) + 2 for turn in row["conversations"]))
             for turn in row["conversations"]:
-                train_words.update(piece_set(turn["value"]))
+                train_words.update(piece_set(turn["value"], spec.numbers))
             yield row
 
     def words_of(rows: Iterable[dict]) -> Iterable[dict]:
         for row in rows:
-            test_words.append(frozenset().union(*(piece_set(turn["value"]) for turn in row["conversations"])))
+            test_words.append(frozenset().union(*(piece_set(turn["value"], spec.numbers)
+                                                  for turn in row["conversations"])))
             yield row
 
     _write_jsonl(out / TRAIN_CONVERSATIONS, measured(_conversations(train, spec, "train texts", distractors, frame)))

@@ -72,6 +72,13 @@ class PrepareStore(Callback):
 
 
 # ---------------------------------------------------------------------------------------------------- hashes
+def job_texts(cfg: DictConfig, job: JobSettings) -> TextSettings:
+    """What decides the job's texts besides its worlds (its direction, variant and mode; the model's prompt,
+    step headers and numbers)."""
+    return TextSettings.of(str(cfg.direction.value), job.variant, str(cfg.mode.value), seed=job.data.seed,
+                           prompt=job.model.prompt, step_headers=job.model.step_headers, numbers=job.model.numbers)
+
+
 def step_hashes(job: JobSettings, seed: int, texts: TextSettings) -> dict[str, str]:
     """The identity of each step: what decides its output, and its inputs' identities."""
     digests = [None if found is None else found.sha256 for found in (job.files["test"], job.files["train"])]
@@ -103,8 +110,7 @@ def run_job(cfg: DictConfig) -> dict | None:
             return None
         raise
     direction, mode, variant = str(cfg.direction.value), str(cfg.mode.value), job.variant
-    texts = TextSettings.of(direction, variant, mode, seed=job.data.seed, prompt=job.model.prompt,
-                            step_headers=job.model.step_headers)
+    texts = job_texts(cfg, job)
     hashes = step_hashes(job, cfg.seed, texts)
     clear_inherited_run()
     from transformers.utils import logging as hf_logging

@@ -21,6 +21,20 @@ def test_coordinates_are_single_pieces_and_counts_agree():
     assert count_pieces(text) == len(pieces(text)) == len(TOKENIZER.encode(text, add_special_tokens=False))
 
 
+def test_digits_cut_a_number_into_its_digits_with_the_space_apart():
+    text = "Step 12:\n(3, 4)\nup\nStep 7:"
+    assert pieces(text, "digits") == ["Step", " ", "1", "2", ":", "\n", "(3, 4)", "\n", "up", "\n", "Step", " ",
+                                      "7", ":"]
+    assert pieces(text)[:3] == ["Step", " 12", ":"]
+    tokenizer = build_word_tokenizer(TEXTS, frame=8, numbers="digits")
+    # A number no text holds is known by its digits; every text round-trips.
+    ids = tokenizer.encode("Step 98:", add_special_tokens=False)
+    assert tokenizer.unk_token_id not in ids and tokenizer.decode(ids) == "Step 98:"
+    for text in TEXTS[:50]:
+        ids = tokenizer.encode(text, add_special_tokens=False)
+        assert tokenizer.decode(ids) == text and len(ids) == count_pieces(text, "digits")
+
+
 def test_every_text_round_trips_without_unknown_tokens():
     for text in TEXTS:
         ids = TOKENIZER.encode(text, add_special_tokens=False)

@@ -125,6 +125,7 @@ def test_marking_without_all_moves_is_refused_naming_the_values():
     ("model.attn_implementation=flash", "model.attn_implementation='flash'.*sdpa, eager"),
     ("model.prompt=short", "model.prompt='short' is not allowed; expected one of paper, task, cells"),
     ("model.log_model=copy", "model.log_model='copy' is not allowed; expected one of transformers, reference"),
+    ("model.numbers=roman", "model.numbers='roman' is not allowed; expected one of whole, digits"),
     ("eval.rules=strict", "eval.rules='strict' is not allowed; expected one of project, paper"),
     ("train.long_conversations=cut", "train.long_conversations='cut' is not allowed; expected one of drop, truncate"),
 ])
@@ -222,20 +223,17 @@ def test_paper_scale_presets_compose():
 
 
 def test_settings_added_since_keep_the_step_hashes_of_finished_runs():
-    # Settings added since (train.long_conversations, model.step_headers/positions/rope_theta, the texts'
+    # Settings added since (train.long_conversations, model.step_headers/positions/rope_theta/numbers, the texts'
     # step_headers, eval.n_valid, data.train_deep) count in a hash only when set, so a store's finished CPU-default and toy steps
     # stay reusable: these are the hashes of the code before them (commit d5259f8). The CPU default's eval
     # scores validation worlds now (eval.n_valid=200), a new output: its eval hash is new. Change these only for
     # a change meant to rerun finished steps (README, "Step versions").
-    from pipeline.workflow.data_build import TextSettings
-    from pipeline.workflow.job import step_hashes
+    from pipeline.workflow.job import job_texts, step_hashes
 
     def hashes(*overrides, toy):
         cfg = compose_job(None, "tracking.root=x", *overrides, toy=toy)
         job = validate(cfg)
-        texts = TextSettings.of(str(cfg.direction.value), job.variant, str(cfg.mode.value), seed=job.data.seed,
-                                prompt=job.model.prompt, step_headers=job.model.step_headers)
-        return step_hashes(job, cfg.seed, texts)
+        return step_hashes(job, cfg.seed, job_texts(cfg, job))
 
     old_default = ("data.train_deep=0", "train.optimizer=adamw", "train.bf16_when_faster=false")
     assert hashes("eval.n_valid=0", *old_default, toy=False) == {
@@ -246,9 +244,10 @@ def test_settings_added_since_keep_the_step_hashes_of_finished_runs():
     assert new["data-build"] != "9084abe767f5f3cf" and new["finetune"] != "9f74feb50b9e71d8"
     assert hashes(toy=True) == {"data-build": "128801358476e7a8", "finetune": "2404019bf8a1b813",
                                 "eval": "4141ac65b7504e8f"}
-    for override in ("model.step_headers=plain", "model.positions=nope", "model.rope_theta=100"):
+    for override in ("model.step_headers=plain", "model.positions=nope", "model.rope_theta=100", "model.numbers=digits"):
         assert hashes(override, toy=True)["finetune"] != "2404019bf8a1b813", override
-    assert hashes("model.step_headers=plain", toy=True)["data-build"] != "128801358476e7a8"
+    for override in ("model.step_headers=plain", "model.numbers=digits"):
+        assert hashes(override, toy=True)["data-build"] != "128801358476e7a8", override
     assert hashes("train.long_conversations=truncate", toy=True)["finetune"] != "2404019bf8a1b813"
     assert hashes("data.train_deep=0.5", toy=True)["data-build"] != "128801358476e7a8"
     assert hashes("data.train_distractors=8", toy=True)["data-build"] != "128801358476e7a8"

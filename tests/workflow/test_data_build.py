@@ -100,6 +100,14 @@ def test_untrained_words_names_the_step_numbers_only_larger_test_worlds_need(tmp
     plain = write_dataset(tmp_path / "plain", train, test,
                           TextSettings.of("bwd", "no-all", "optimal", step_headers="plain"), (2, 2))
     assert not any(word.strip().isdigit() for word in plain["untrained_words"]["words"])
+    # Digits (model.numbers=digits): a step number is its digits, so only digits no training map reached are
+    # untrained, and every header's space is a token of its own.
+    digits = write_dataset(tmp_path / "digits", train, test,
+                           TextSettings.of("bwd", "no-all", "optimal", numbers="digits"), (2, 2))
+    numbers = {word for word in digits["untrained_words"]["words"] if word.strip().isdigit()}
+    assert numbers == {digit for word in expected for digit in word.strip()} - set(
+        "".join(str(k) for k in range(1, longest_train + 1)))
+    assert digits["train_tokens"]["mean"] > numbered["train_tokens"]["mean"]
 
 
 def test_untrained_words_counts_each_world_once():

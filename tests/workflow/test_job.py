@@ -249,8 +249,9 @@ def test_a_launched_finetune_trains_exactly_what_the_in_process_one_does(tmp_pat
 
 def test_plain_headers_nope_model_and_validation_split_run_end_to_end(tmp_path, capsys):
     """The extrapolation switches through a whole job: the data are written with plain headers, the model is
-    built without RoPE, and eval.n_valid scores the validation worlds apart from the test worlds."""
-    cfg = _cfg(tmp_path, "model.step_headers=plain", "model.positions=nope", "eval.n_valid=3", "variant=no-all")
+    built without RoPE and its tokenizer cuts numbers into digits, and eval.n_valid scores the validation worlds apart from the test worlds."""
+    cfg = _cfg(tmp_path, "model.step_headers=plain", "model.positions=nope", "model.numbers=digits", "eval.n_valid=3",
+               "variant=no-all")
     results = run_job(cfg)
     assert results["valid_n_episodes"] == 3 and results["n_episodes"] == 3
     (job,) = _job_runs(cfg)
@@ -263,6 +264,9 @@ def test_plain_headers_nope_model_and_validation_split_run_end_to_end(tmp_path, 
     model_dir = mlflow.artifacts.download_artifacts(run_id=ids["finetune"], artifact_path="model",
                                                     tracking_uri=cfg.tracking.uri)
     assert json.loads((Path(model_dir) / "config.json").read_text())["no_rope_layers"] == [0, 0]
+    from pipeline.lm.models import load_tokenizer
+
+    assert load_tokenizer(model_dir).tokenize("Step 12:") == ["Step", " ", "1", "2", ":"]
     valid = [json.loads(line) for line in open(mlflow.artifacts.download_artifacts(
         run_id=ids["eval"], artifact_path="episodes_valid.jsonl", tracking_uri=cfg.tracking.uri))]
     test = [json.loads(line) for line in open(mlflow.artifacts.download_artifacts(
