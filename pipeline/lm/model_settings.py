@@ -83,6 +83,8 @@ class ModelSettings:
         require(self.numbers in NUMBERS, "numbers", self.numbers, f"one of {', '.join(NUMBERS)}")
         require(self.positions in POSITIONS, "positions", self.positions, f"one of {', '.join(POSITIONS)}")
         require(self.rope_theta > 1, "rope_theta", self.rope_theta, "a base above 1")
+        require(self.numbers == "whole" or self.kind is ModelKind.scratch, "numbers", self.numbers,
+                "whole for a pretrained model (kind=hf keeps its own tokenizer)")
         require(self.positions == "rope" or self.kind is ModelKind.scratch, "positions", self.positions,
                 "rope for a pretrained model (kind=hf keeps its own position encoding)")
         require(self.log_model in LOG_MODEL_CHOICES, "log_model", self.log_model, f"one of {', '.join(LOG_MODEL_CHOICES)}")
