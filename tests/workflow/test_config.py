@@ -236,11 +236,12 @@ def test_settings_added_since_keep_the_step_hashes_of_finished_runs():
         job = validate(cfg)
         return step_hashes(job, cfg.seed, job_texts(cfg, job))
 
-    old_default = ("data.train_deep=0", "train.optimizer=adamw", "train.bf16_when_faster=false")
+    old_default = ("data.train_deep=0", "train.optimizer=adamw", "train.bf16_when_faster=false", "model.numbers=whole")
     assert hashes("eval.n_valid=0", *old_default, toy=False) == {
         "data-build": "9084abe767f5f3cf", "finetune": "9f74feb50b9e71d8", "eval": "7a5f1b9983e9f635"}
     assert hashes(*old_default, toy=False)["eval"] != "7a5f1b9983e9f635"
-    # The CPU default's recipe since (Muon, half the train worlds deep, bf16 only where faster): new steps.
+    # The CPU default's recipe since (Muon, half the train worlds deep, bf16 only where faster, numbers as
+    # digits): new steps.
     new = hashes(toy=False)
     assert new["data-build"] != "9084abe767f5f3cf" and new["finetune"] != "9f74feb50b9e71d8"
     assert hashes(toy=True) == {"data-build": "128801358476e7a8", "finetune": "2404019bf8a1b813",
