@@ -214,6 +214,42 @@ def test_cpu_study_is_the_optimal_half_of_table_1_with_two_seeds_where_asked():
         ("no-marking", "fwd", 0), ("no-marking", "bwd", 0), ("marking-deadend-named", "bwd", 0)])
 
 
+def test_cpu_paper_is_every_cell_of_tables_1_3_7_8_with_table_1s_bwd_cells_twice():
+    from pipeline.core.variants import PAPER_MAP_VARIANTS
+    from pipeline.workflow.config import UndefinedCell
+    from pipeline.workflow.job import job_texts, step_hashes
+
+    cfg = _compose(name="cpu_paper", sweeps=True, hydra_node=True)
+    assert cfg.hydra.launcher.n_jobs == 2 and cfg.threads == 1 and cfg.skip_undefined
+    params = cfg.hydra.sweeper.params
+    jobs, finetunes, skipped = {}, set(), []
+    for mode in _sweep_values(params, "mode"):
+        for cell in _sweep_values(params, "+study_cell"):
+            job = _compose([f"mode={mode}", f"+study_cell={cell}"], name="cpu_paper", sweeps=True)
+            try:
+                settings = validate(job)
+            except UndefinedCell:
+                skipped.append((cell, mode))
+                continue
+            direction = "-" if settings.variant in ("none", "dfs") else job.direction.value
+            key = (settings.variant, direction, mode, job.seed)
+            assert key not in jobs, key
+            jobs[key] = job
+            finetunes.add(step_hashes(settings, job.seed, job_texts(job, settings))["finetune"])
+            # The CPU default's recipe; only Figure 3's cells log and evaluate their checkpoints.
+            assert OmegaConf.masked_copy(job, ["data", "model"]) == OmegaConf.masked_copy(_compose(), ["data", "model"])
+            figure3 = settings.variant in ("none", "cot", "marking-deadend") and direction in ("-", "bwd")
+            assert job.eval.curve == job.train.log_checkpoints == figure3, key
+    assert skipped == [("dfs", "optimal")]
+    table1_bwd = [("none", "-"), ("cot", "bwd"), ("marking-deadend", "bwd"), ("no-marking", "bwd")]
+    expected = {(variant, direction, mode, 0) for mode in ("optimal", "reachable")
+                for variant in (*PAPER_MAP_VARIANTS, "cot") for direction in ("fwd", "bwd")}
+    expected |= {("none", "-", mode, 0) for mode in ("optimal", "reachable")} | {("dfs", "-", "reachable", 0)}
+    expected |= {(variant, direction, mode, 1) for variant, direction in table1_bwd for mode in ("optimal", "reachable")}
+    assert set(jobs) == expected and len(jobs) == 39
+    assert len(finetunes) == 39   # every job trains a model of its own
+
+
 def test_paper_scale_presets_compose():
     cfg = _compose(["data=paper", "model=llama3_8b", "train=paper", "eval=paper"])
     assert cfg.model.dtype == "bfloat16" and cfg.model.max_length == 8192
