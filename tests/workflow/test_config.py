@@ -170,7 +170,7 @@ def test_sweep_files_compose_and_define_the_whole_grid(sweep):
 
 
 def test_every_sweep_file_is_tested():
-    assert sorted(p.stem for p in SWEEPS.glob("*.yaml")) == ["cpu_study", "extrapolation", "paper", "smoke"]
+    assert sorted(p.stem for p in SWEEPS.glob("*.yaml")) == ["cpu_paper", "cpu_study", "extrapolation", "paper", "smoke"]
 
 
 def test_the_extrapolation_study_runs_each_lever_alone_with_two_seeds_on_the_default_job():
