@@ -3,8 +3,8 @@
 A coordinate ``(x, y)`` is one piece (one word of this language: the model matches a cell against the
 obstacle lists by token identity instead of assembling five pieces, and sequences are about half as long);
 other pieces are numbers (or their digits: `NUMBER_PIECES`), words and punctuation, each optionally with one
-leading space, plus single whitespace characters. Decoding concatenates pieces, so ``decode(encode(text)) == text`` for any text in
-the vocabulary. The vocabulary is the sorted set of pieces of the training texts plus every coordinate the
+leading space, plus single whitespace characters. Decoding concatenates pieces, so
+``decode(encode(text)) == text`` for any text in the vocabulary. The vocabulary is the sorted set of pieces of the training texts plus every coordinate the
 frame can produce (``-1`` .. ``frame`` on both axes), so extrapolated test worlds never meet an unknown cell.
 """
 

@@ -141,7 +141,8 @@ def inspect_run(tracking_uri: str, run_id: str, world: int | None = None, failed
                                 for r in chosen)]) + "\n"
 
 
-PROBE_SPLITS = ("valid", "test")
+# The worlds --labels can grade, and how its header names them.
+PROBE_SPLITS = {"valid": "validation worlds", "test": "test worlds"}
 
 
 def probe_labels(tracking_uri: str, run_id: str, limit: int | None = None, split: str = "valid") -> str:
@@ -198,8 +199,8 @@ def probe_labels(tracking_uri: str, run_id: str, limit: int | None = None, split
             _tally(lines, (inside, kind), ok)
             if move is not None and not inside:
                 _tally(moves, (kind, move), ok)
-    head = (f"job {job.info.run_id} · {direction} {variant} · {len(records[:limit])} {SPLIT_NAMES[split]}, each fed its "
-            "golden answer: lines predicted (greedy, every token of the line), 95% Wilson interval")
+    head = (f"job {job.info.run_id} · {direction} {variant} · {len(records[:limit])} {PROBE_SPLITS[split]}, each fed "
+            "its golden answer: lines predicted (greedy, every token of the line), 95% Wilson interval")
     rows = [head, "", f"{'label of a':<14} {'inside the training sizes':<34} beyond them"]
     rows += [f"{kind:<14} {_rate(labels, (True, kind)):<34} {_rate(labels, (False, kind))}" for kind in NEIGHBOURS]
     rows += ["", f"{'every line':<14} {'inside the training sizes':<34} beyond them"]
@@ -212,9 +213,6 @@ def probe_labels(tracking_uri: str, run_id: str, limit: int | None = None, split
         rows += [f"{move + 1:<6} {_rate(moves, ('backtrack move', move)):<34} {_rate(moves, ('plan', move))}"
                  for move in range(last)]
     return "\n".join(rows) + "\n"
-
-
-SPLIT_NAMES = {"valid": "validation worlds", "test": "test worlds"}
 
 
 def _validation_worlds(client, job_id: str, data_id: str, test: list[World], scratch: str) -> list[World]:
@@ -267,7 +265,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--labels", action="store_true",
                         help="grade the model on every line of every validation world's golden answer (a "
                              "teacher-forced probe: labels by neighbour, lines by kind, moves by number)")
-    parser.add_argument("--split", choices=PROBE_SPLITS, default="valid",
+    parser.add_argument("--split", choices=list(PROBE_SPLITS), default="valid",
                         help="with --labels: the worlds graded (default valid: recipes are chosen on them)")
     add_store_arguments(parser)
     args = parser.parse_intermixed_args(argv)  # tracking.root=DIR may follow the options

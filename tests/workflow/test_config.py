@@ -245,7 +245,8 @@ def test_cpu_paper_is_every_cell_of_tables_1_3_7_8_with_table_1s_bwd_cells_twice
     expected = {(variant, direction, mode, 0) for mode in ("optimal", "reachable")
                 for variant in (*PAPER_MAP_VARIANTS, "cot") for direction in ("fwd", "bwd")}
     expected |= {("none", "-", mode, 0) for mode in ("optimal", "reachable")} | {("dfs", "-", "reachable", 0)}
-    expected |= {(variant, direction, mode, 1) for variant, direction in table1_bwd for mode in ("optimal", "reachable")}
+    expected |= {(variant, direction, mode, 1)
+                 for variant, direction in table1_bwd for mode in ("optimal", "reachable")}
     assert set(jobs) == expected and len(jobs) == 39
     assert len(finetunes) == 39   # every job trains a model of its own
 
@@ -283,7 +284,8 @@ def test_settings_added_since_keep_the_step_hashes_of_finished_runs():
     assert new["data-build"] != "9084abe767f5f3cf" and new["finetune"] != "9f74feb50b9e71d8"
     assert hashes(toy=True) == {"data-build": "128801358476e7a8", "finetune": "2404019bf8a1b813",
                                 "eval": "4141ac65b7504e8f"}
-    for override in ("model.step_headers=plain", "model.positions=nope", "model.rope_theta=100", "model.numbers=digits"):
+    for override in ("model.step_headers=plain", "model.positions=nope", "model.rope_theta=100",
+                     "model.numbers=digits"):
         assert hashes(override, toy=True)["finetune"] != "2404019bf8a1b813", override
     for override in ("model.step_headers=plain", "model.numbers=digits"):
         assert hashes(override, toy=True)["data-build"] != "128801358476e7a8", override

@@ -249,7 +249,8 @@ def test_a_launched_finetune_trains_exactly_what_the_in_process_one_does(tmp_pat
 
 def test_plain_headers_nope_model_and_validation_split_run_end_to_end(tmp_path, capsys):
     """The extrapolation switches through a whole job: the data are written with plain headers, the model is
-    built without RoPE and its tokenizer cuts numbers into digits, and eval.n_valid scores the validation worlds apart from the test worlds."""
+    built without RoPE and its tokenizer cuts numbers into digits, and eval.n_valid scores the validation worlds
+    apart from the test worlds."""
     cfg = _cfg(tmp_path, "model.step_headers=plain", "model.positions=nope", "model.numbers=digits", "eval.n_valid=3",
                "variant=no-all")
     results = run_job(cfg)
