@@ -24,6 +24,9 @@ LOG_MODEL_CHOICES = ("transformers", "reference")
 # mask alone tells order; Kazemnejad et al. 2023), or in every other layer starting with the first
 # ("alternate"). The last two build transformers' SmolLM3, a Llama with per-layer RoPE switches.
 POSITIONS = ("rope", "nope", "alternate")
+# How a scratch model scales its attention logits: by 1/sqrt(head size) alone (Llama's), or also by log(n), n the
+# number of keys a query sees (pipeline.lm.models.log_length_attention: Scalable-Softmax with s fixed at 1).
+ATTENTION_SCALES = ("constant", "log_length")
 # How the word-level tokenizer cuts a number outside a cell (pipeline.lm.tokenizer.NUMBER_PIECES): one piece, or
 # one piece a digit.
 NUMBERS = ("whole", "digits")
@@ -63,6 +66,7 @@ class ModelSettings:
     # NUMBERS (scratch models): `digits` makes a step number larger than training shows of trained pieces.
     numbers: str = field(default="whole", metadata={"hash_if_set": True})
     positions: str = field(default="rope", metadata={"hash_if_set": True})   # POSITIONS; scratch models only
+    attention_scale: str = field(default="constant", metadata={"hash_if_set": True})  # ATTENTION_SCALES; scratch
     # RoPE's base (scratch models): 10000 is Llama's. A small base turns even the slowest rotary pair through
     # whole periods within the training lengths, so a longer test sequence meets no angle training never saw.
     rope_theta: float = field(default=10000.0, metadata={"hash_if_set": True})
@@ -82,6 +86,13 @@ class ModelSettings:
         require(self.step_headers in STEP_HEADERS, "step_headers", self.step_headers, f"one of {', '.join(STEP_HEADERS)}")
         require(self.numbers in NUMBERS, "numbers", self.numbers, f"one of {', '.join(NUMBERS)}")
         require(self.positions in POSITIONS, "positions", self.positions, f"one of {', '.join(POSITIONS)}")
+        require(self.attention_scale in ATTENTION_SCALES, "attention_scale", self.attention_scale,
+                f"one of {', '.join(ATTENTION_SCALES)}")
+        require(self.attention_scale == "constant" or self.kind is ModelKind.scratch, "attention_scale",
+                self.attention_scale, "constant for a pretrained model (kind=hf keeps its own attention)")
+        require(self.attention_scale == "constant" or self.attn_implementation == "sdpa", "attention_scale",
+                self.attention_scale, f"constant with attn_implementation={self.attn_implementation} (log_length "
+                "is built on sdpa)")
         require(self.rope_theta > 1, "rope_theta", self.rope_theta, "a base above 1")
         require(self.numbers == "whole" or self.kind is ModelKind.scratch, "numbers", self.numbers,
                 "whole for a pretrained model (kind=hf keeps its own tokenizer)")

@@ -15,6 +15,7 @@ from typing import Iterable
 
 import torch
 from transformers import (
+    AttentionInterface,
     AutoModelForCausalLM,
     AutoTokenizer,
     LlamaConfig,
@@ -24,6 +25,8 @@ from transformers import (
     SmolLM3ForCausalLM,
     PreTrainedTokenizerBase,
 )
+from transformers.integrations.sdpa_attention import sdpa_attention_forward
+from transformers.masking_utils import AttentionMaskInterface, sdpa_mask
 
 from pipeline.lm.chat import ChatFormat
 from pipeline.lm.model_settings import ATTENTION_IMPLEMENTATIONS, DTYPES, ModelKind, ModelSettings
@@ -34,6 +37,29 @@ CHAT_FORMAT_FILE = "chat_format.json"
 PAD_TOKEN = "<pad>"
 
 log = logging.getLogger(__name__)
+
+# `ModelSettings.attention_scale=log_length`: the attention function such a model runs, registered with
+# transformers' attention interfaces under this name (its masks are sdpa's). The model's config records the
+# scale (`attention_scale`), and `load_model` picks this function for it.
+LOG_LENGTH_ATTENTION = "sdpa_log_length"
+
+
+def log_length_attention(module: torch.nn.Module, query: torch.Tensor, key: torch.Tensor, value: torch.Tensor,
+                         attention_mask: torch.Tensor | None, *, position_ids: torch.Tensor | None = None,
+                         **kwargs) -> tuple[torch.Tensor, None]:
+    """sdpa attention whose logits are also multiplied by log(n), n = position + 1: the number of keys a
+    causal query at that position sees. The largest logit then grows with the length, so a query can stay as
+    sharply on one matching key among many as among few (Chiang and Cholak 2022; Scalable-Softmax, Nakanishi
+    2025, there with a learnt factor s per head, fixed at 1 here so that the model keeps Llama's parameters)."""
+    if position_ids is None:
+        raise ValueError("log_length attention needs the position ids of the queries")
+    scale = torch.log1p(position_ids.to(query.dtype))  # (batch or 1, queries)
+    return sdpa_attention_forward(module, query * scale[:, None, :, None], key, value, attention_mask,
+                                  position_ids=position_ids, **kwargs)
+
+
+AttentionInterface.register(LOG_LENGTH_ATTENTION, log_length_attention)
+AttentionMaskInterface.register(LOG_LENGTH_ATTENTION, sdpa_mask)
 
 
 def make_tokenizer(settings: ModelSettings, texts: Iterable[str], frame: int) -> PreTrainedTokenizerBase:
@@ -94,7 +120,8 @@ def build_scratch_model(tokenizer: PreTrainedTokenizerBase, settings: ModelSetti
 
     ``settings.positions`` (`POSITIONS`): ``rope`` builds a Llama; ``nope`` and ``alternate`` build the same
     network as transformers' SmolLM3 (a Llama whose layers each switch RoPE on or off), with RoPE in no layer or
-    in layers 0, 2, ...; ``settings.rope_theta`` is RoPE's base. The global torch RNG is left as it was, so
+    in layers 0, 2, ...; ``settings.rope_theta`` is RoPE's base. ``settings.attention_scale=log_length`` runs
+    `log_length_attention` and records it in the config. The global torch RNG is left as it was, so
     building a model does not shift later draws.
     """
     s = settings
@@ -103,6 +130,10 @@ def build_scratch_model(tokenizer: PreTrainedTokenizerBase, settings: ModelSetti
         # SmolLM3's no_rope_layers: 1 = this layer uses RoPE, 0 = it does not.
         uses_rope = [int(s.positions == "alternate" and layer % 2 == 0) for layer in range(s.num_layers)]
         config_class, extra = SmolLM3Config, {"no_rope_layers": uses_rope, "use_sliding_window": False}
+    attn_implementation = s.attn_implementation
+    if s.attention_scale != "constant":
+        extra["attention_scale"] = s.attention_scale
+        attn_implementation = LOG_LENGTH_ATTENTION
     config = config_class(
         vocab_size=len(tokenizer),
         hidden_size=s.hidden_size,
@@ -115,7 +146,7 @@ def build_scratch_model(tokenizer: PreTrainedTokenizerBase, settings: ModelSetti
         bos_token_id=tokenizer.bos_token_id,
         eos_token_id=tokenizer.eos_token_id,
         tie_word_embeddings=True,
-        attn_implementation=s.attn_implementation,
+        attn_implementation=attn_implementation,
         rope_theta=s.rope_theta,
         **extra,
     )
@@ -145,14 +176,20 @@ def _require_dir(path: Path, expected: str) -> None:
 def load_model(path: str | Path, *, dtype: str = "float32", trust_remote_code: bool = False,
                attn_implementation: str | None = None) -> PreTrainedModel:
     """A causal LM from a local directory of safetensors weights (no pickle, no remote code unless asked).
-    ``attn_implementation`` None keeps transformers' choice for the model."""
+    ``attn_implementation`` None keeps transformers' choice for the model; a model whose config records
+    ``attention_scale: log_length`` runs `log_length_attention` (its math, not a kernel choice)."""
     torch_dtype = _torch_dtype(dtype)
     _check_attention(attn_implementation)
-    extra = {} if attn_implementation is None else {"attn_implementation": attn_implementation}
     path = Path(path)
     _require_dir(path, _EXPECTED_MODEL)
     if not (path / "config.json").is_file():
         raise ModelLoadError(f"{path}: config.json is missing; expected {_EXPECTED_MODEL}")
+    if attention_scale(path) == "log_length":
+        if attn_implementation not in (None, "sdpa"):
+            raise ValueError(f"attn_implementation={attn_implementation!r} is not allowed for {path}: its model "
+                             "scales attention by log_length, which runs on sdpa only")
+        attn_implementation = LOG_LENGTH_ATTENTION
+    extra = {} if attn_implementation is None else {"attn_implementation": attn_implementation}
     if not any(path.glob("*.safetensors")):
         raise ModelLoadError(f"{path}: no *.safetensors file; expected {_EXPECTED_MODEL}")
     try:
@@ -163,6 +200,16 @@ def load_model(path: str | Path, *, dtype: str = "float32", trust_remote_code: b
     except Exception as exc:  # safetensors, json and torch each raise their own types for a broken file
         raise ModelLoadError(f"{path}: cannot load the model ({type(exc).__name__}: {exc}); "
                              f"expected {_EXPECTED_MODEL}") from exc
+
+
+def attention_scale(model_dir: str | Path) -> str:
+    """How the model saved in ``model_dir`` scales its attention logits (`ATTENTION_SCALES`; a model without
+    the record, pretrained ones included: ``constant``)."""
+    try:
+        config = json.loads((Path(model_dir) / "config.json").read_text())
+    except (OSError, ValueError) as exc:
+        raise ModelLoadError(f"{model_dir}: cannot read config.json ({exc}); expected {_EXPECTED_MODEL}") from exc
+    return config.get("attention_scale", "constant") if isinstance(config, dict) else "constant"
 
 
 def load_tokenizer(path: str | Path, *, trust_remote_code: bool = False) -> PreTrainedTokenizerBase:

@@ -197,3 +197,11 @@ def test_vllm_decoder_without_vllm_says_how_to_install(tokenizer):
 
     with pytest.raises(ImportError, match=r"pip install '\.\[gpu\]'"):
         VLLMDecoder("some/model", tokenizer, FMT)
+
+
+def test_vllm_refuses_a_model_whose_attention_it_does_not_run(tmp_path):
+    from pipeline.lm.decoding import make_decoder
+
+    (tmp_path / "config.json").write_text('{"model_type": "llama", "attention_scale": "log_length"}')
+    with pytest.raises(ValueError, match="backend='vllm' cannot decode .*log_length.*expected backend='hf'"):
+        make_decoder(str(tmp_path), backend="vllm")

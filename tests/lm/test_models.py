@@ -6,7 +6,10 @@ from pipeline.lm.model_settings import ModelSettings
 from pipeline.lm.models import (
     PAD_TOKEN,
     ModelLoadError,
+    LOG_LENGTH_ATTENTION,
+    attention_scale,
     build_scratch_model,
+    log_length_attention,
     make_model,
     make_tokenizer,
     load_chat_format,
@@ -137,6 +140,56 @@ def test_positions_switch_rope_per_layer_and_round_trip(tokenizer, tmp_path, pos
     torch.testing.assert_close(loaded(input_ids=ids).logits, model(input_ids=ids).logits)
     with pytest.raises(ValueError, match="positions='alibi' is not allowed; expected one of rope, nope, alternate"):
         _scratch(tokenizer, positions="alibi")
+
+
+def test_log_length_attention_scales_each_querys_logits_by_the_log_of_the_keys_it_sees():
+    """Against softmax written out: logits q.k / sqrt(d) * log(position + 1), causal."""
+    g = torch.Generator().manual_seed(0)
+    q, k, v = (torch.randn(1, 2, 5, 4, generator=g) for _ in range(3))
+    positions = torch.arange(5)[None]
+    module = torch.nn.Module()
+    module.is_causal = True
+    out, _ = log_length_attention(module, q, k, v, None, position_ids=positions, scaling=0.5, dropout=0.0)
+    logits = (q @ k.mT) * 0.5 * torch.log(positions + 1.0)[:, None, :, None]
+    logits = logits.masked_fill(torch.ones(5, 5, dtype=torch.bool).triu(1), float("-inf"))
+    torch.testing.assert_close(out, (logits.softmax(-1) @ v).transpose(1, 2))
+    with pytest.raises(ValueError, match="needs the position ids"):
+        log_length_attention(module, q, k, v, None, scaling=0.5)
+
+
+@torch.no_grad()
+def test_attention_scale_switch_keeps_the_parameters_changes_the_outputs_and_round_trips(tokenizer, tmp_path):
+    """`attention_scale=log_length`: Llama's parameters, other outputs; recorded in the config, so the loaded
+    model runs it too; cached decoding (one token at a time) sees the same positions as a whole forward."""
+    plain = _scratch(tokenizer, seed=1).eval()
+    model = _scratch(tokenizer, seed=1, attention_scale="log_length").eval()
+    assert model.config._attn_implementation == LOG_LENGTH_ATTENTION and model.config.attention_scale == "log_length"
+    assert all(torch.equal(a, b) for a, b in zip(model.parameters(), plain.parameters()))
+    ids = torch.tensor([tokenizer.encode("Grid is from (0, 0) to (3, 2). Goal: (3, 2)", add_special_tokens=False)])
+    whole = model(input_ids=ids).logits
+    assert not torch.allclose(whole, plain(input_ids=ids).logits)
+    prefix = model(input_ids=ids[:, :-1], use_cache=True)
+    step = model(input_ids=ids[:, -1:], cache=prefix.past_key_values).logits
+    torch.testing.assert_close(step[:, -1], whole[:, -1], rtol=1e-4, atol=1e-5)
+    model.save_pretrained(tmp_path)
+    assert attention_scale(tmp_path) == "log_length"
+    loaded = load_model(tmp_path)
+    assert loaded.config._attn_implementation == LOG_LENGTH_ATTENTION
+    torch.testing.assert_close(loaded(input_ids=ids).logits, whole)
+    with pytest.raises(ValueError, match="attn_implementation='eager' is not allowed.*log_length"):
+        load_model(tmp_path, attn_implementation="eager")
+    plain.save_pretrained(tmp_path / "plain")
+    assert attention_scale(tmp_path / "plain") == "constant"
+
+
+@pytest.mark.parametrize(("changes", "message"), [
+    (dict(attention_scale="alibi"), "attention_scale='alibi' is not allowed; expected one of constant, log_length"),
+    (dict(attention_scale="log_length", attn_implementation="eager"), "constant with attn_implementation=eager"),
+    (dict(attention_scale="log_length", kind="hf", path="x"), "constant for a pretrained model"),
+])
+def test_attention_scale_names_what_is_allowed(changes, message):
+    with pytest.raises(ValueError, match=message):
+        ModelSettings(**changes)
 
 
 def test_a_tokenizer_without_a_pad_token_gets_the_papers_and_the_model_a_row_for_it(tiny_llama3_dir, tokenizer, tmp_path):

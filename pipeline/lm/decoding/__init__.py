@@ -24,10 +24,13 @@ def make_decoder(model_dir: str, *, backend: str = "hf", batch_size: int = 32, m
                  dtype: str = "float32", trust_remote_code: bool = False,
                  attn_implementation: str | None = None) -> Decoder:
     """A decoder over a finetuned model directory (safetensors, tokenizer and chat format, as finetune saves)."""
-    from pipeline.lm.models import load_chat_format, load_model, load_tokenizer
+    from pipeline.lm.models import attention_scale, load_chat_format, load_model, load_tokenizer
 
     if backend not in BACKENDS:
         raise ValueError(f"backend={backend!r} is not allowed; expected one of {', '.join(BACKENDS)}")
+    if backend == "vllm" and attention_scale(model_dir) != "constant":
+        raise ValueError(f"backend='vllm' cannot decode {model_dir}: its model scales attention by "
+                         f"{attention_scale(model_dir)}, which vLLM does not run; expected backend='hf'")
     fmt = load_chat_format(model_dir)
     tokenizer = load_tokenizer(model_dir, trust_remote_code=trust_remote_code)
     common = dict(batch_size=batch_size, max_new_tokens=max_new_tokens)
