@@ -142,10 +142,22 @@ def first_wrong_line(world: World, direction: str, variant: str, text: object, s
 def label_kinds(world: World, direction: str, variant: str, steps: str = "numbered") -> list[tuple[int, str]]:
     """Every label line of the golden optimal-setting thought as (0-based line index, what its neighbour is:
     one of NEIGHBOURS): what a teacher-forced probe grades the model's labels by."""
+    return [(index, kind) for index, kind, _ in label_cells(world, direction, variant, steps)]
+
+
+def label_cells(world: World, direction: str, variant: str, steps: str = "numbered") -> list[tuple[int, str, Cell]]:
+    """`label_kinds` with the neighbour each label is about: (line index, what it is, its cell)."""
     golden = golden_answer(world, direction, variant, "optimal", steps=steps).split("\n")
     levels = _levels(world, world.start if direction == "fwd" else world.goal)
-    return [(index, _neighbour_kind(world, _cell(golden[index - 1]), levels, bfs_step))
-            for index, (_, kind, bfs_step, _, _) in enumerate(_walk(golden)) if kind == "label"]
+    labels = [(index, _cell(golden[index - 1]), bfs_step)
+              for index, (_, kind, bfs_step, _, _) in enumerate(_walk(golden)) if kind == "label"]
+    return [(index, _neighbour_kind(world, cell, levels, bfs_step), cell) for index, cell, bfs_step in labels]
+
+
+def corner_offset(world: World, cell: Cell) -> int:
+    """How far ``cell`` lies from the grid's low corner: the larger of x - x0 and y - y0. A grid of side s holds
+    offsets up to s - 1, so no cell inside a training world of sides up to 4 lies at offset 4 or more."""
+    return max(cell[0] - world.x0, cell[1] - world.y0)
 
 
 # What `line_kinds` calls a golden line: LINE_KINDS' thought and section kinds, with a Backtrack line split into

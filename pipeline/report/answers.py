@@ -148,12 +148,13 @@ PROBE_SPLITS = {"valid": "validation worlds", "test": "test worlds"}
 def probe_labels(tracking_uri: str, run_id: str, limit: int | None = None, split: str = "valid") -> str:
     """The text of ``python -m pipeline.inspect RUN_ID --labels``: the job's model, fed each world's golden
     answer, graded on every line (`pipeline.lm.probe`): the map's labels by what the neighbour is, every line by
-    its kind, and the Backtrack's and Plan's moves by their index; inside the training sizes and beyond them.
+    its kind, and the Backtrack's and Plan's moves by their index; inside the training sizes and beyond them; and
+    beyond them, the labels of new free cells by how far the cell lies from the grid's low corner.
     ``split``: the validation worlds (the default: a diagnosis that picks the next lever reads them, never the
     test split) or the test worlds."""
     from mlflow.tracking import MlflowClient
 
-    from pipeline.core.map_errors import NEIGHBOURS, PROBE_KINDS, label_kinds, line_kinds
+    from pipeline.core.map_errors import NEIGHBOURS, PROBE_KINDS, corner_offset, label_cells, line_kinds
     from pipeline.core.texts import prompt_turns
     from pipeline.lm.models import load_chat_format, load_model, load_tokenizer
     from pipeline.lm.probe import labels_predicted
@@ -187,14 +188,17 @@ def probe_labels(tracking_uri: str, run_id: str, limit: int | None = None, split
     labels: dict[tuple[bool, str], list[int]] = {}
     lines: dict[tuple[bool, str], list[int]] = {}
     moves: dict[tuple[str, int], list[int]] = {}
+    offsets: dict[int, list[int]] = {}  # new free cells beyond the training sizes, by `corner_offset`
     for record in records[:limit]:
         world, inside = worlds[record["world_index"]], record["interpolated"]
         kinds = line_kinds(world, direction, variant, steps)
         answer = golden_answer(world, direction, variant, "optimal", steps=steps)
         graded = labels_predicted(model, tokenizer, fmt, prompt_turns(world, spec.get("prompt", "paper")), answer,
                                   range(len(kinds)))
-        for line, kind in label_kinds(world, direction, variant, steps):
+        for line, kind, cell in label_cells(world, direction, variant, steps):
             _tally(labels, (inside, kind), graded[line])
+            if kind == "free" and not inside:
+                _tally(offsets, corner_offset(world, cell), graded[line])
         for (kind, move), ok in zip(kinds, graded):
             _tally(lines, (inside, kind), ok)
             if move is not None and not inside:
@@ -212,6 +216,11 @@ def probe_labels(tracking_uri: str, run_id: str, limit: int | None = None, split
                  f"{'move':<6} {'backtrack move':<34} plan"]
         rows += [f"{move + 1:<6} {_rate(moves, ('backtrack move', move)):<34} {_rate(moves, ('plan', move))}"
                  for move in range(last)]
+    if offsets:
+        rows += ["", "beyond the training sizes, new free cells by their offset from the grid's low corner",
+                 "(the larger of x - x0 and y - y0; inside a training world it is at most its side - 1)",
+                 f"{'offset':<6} label"]
+        rows += [f"{offset:<6} {_rate(offsets, offset)}" for offset in sorted(offsets)]
     return "\n".join(rows) + "\n"
 
 

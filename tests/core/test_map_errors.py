@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import pytest
 from hypothesis import given, settings, strategies as st
 
 from pipeline import World
 from pipeline.core.map_errors import (
-    LINE_KINDS, NEIGHBOURS, STEP_BUCKETS, category, first_wrong_line, label_kinds, line_kinds, step_bucket,
+    LINE_KINDS, NEIGHBOURS, STEP_BUCKETS, category, corner_offset, first_wrong_line, label_cells, label_kinds,
+    line_kinds, step_bucket,
 )
 from pipeline.core.texts import golden_answer
 
@@ -158,3 +161,13 @@ def test_line_kinds_name_every_golden_line_and_number_the_moves():
     assert [move for kind, move in tail if kind == "backtrack move"] == list(range(len(plan)))
     assert [move for kind, move in tail if kind == "plan"] == list(range(len(plan)))
     assert backtrack[1::2] == plan
+
+
+def test_label_cells_name_each_labels_neighbour_and_its_offset_from_the_low_corner():
+    golden = _golden("marking-deadend")
+    cells = label_cells(WORLD, "bwd", "marking-deadend")
+    assert [(line, kind) for line, kind, _ in cells] == label_kinds(WORLD, "bwd", "marking-deadend")
+    assert all(golden[line - 1] == f"({x}, {y})" for line, _, (x, y) in cells)
+    shifted = SimpleNamespace(x0=1, y0=3)  # the offset reads the grid's low corner alone
+    assert [corner_offset(shifted, cell) for cell in ((1, 3), (5, 3), (2, 4), (0, 3))] == [0, 4, 1, 0]
+    assert corner_offset(WORLD, (2, 2)) == 2

@@ -95,7 +95,7 @@ def test_the_finetuned_model_is_an_mlflow_model_and_inspect_shows_its_answers(tm
     assert "Downloading artifacts" not in done.stdout + done.stderr
     # The teacher-forced probe of the same model: a row per kind of neighbour with counts that add up to the
     # labels of the first world's golden answer, then a row per kind of line with counts that add up to its lines.
-    from pipeline.core.map_errors import NEIGHBOURS, PROBE_KINDS, label_kinds, line_kinds
+    from pipeline.core.map_errors import NEIGHBOURS, PROBE_KINDS, corner_offset, label_cells, label_kinds, line_kinds
     from pipeline.core.world import load_worlds
     from pipeline.report.answers import InspectError, probe_labels
 
@@ -125,6 +125,16 @@ def test_the_finetuned_model_is_an_mlflow_model_and_inspect_shows_its_answers(tm
         probe_labels(cfg.tracking.uri, job.info.run_id, split="train")
     assert counted(graded) == [len(label_kinds(test[0], "bwd", "marking-deadend")),
                                len(line_kinds(test[0], "bwd", "marking-deadend"))]
+    # Beyond the training sizes (toy: sides 2..3), the new free cells' labels again, by their offset.
+    free = sorted(corner_offset(test[0], cell) for _, kind, cell in label_cells(test[0], "bwd", "marking-deadend")
+                  if kind == "free")
+    by_offset = graded.split("by their offset from the grid's low corner")
+    if max(test[0].size_x, test[0].size_y) > 3:
+        rows = by_offset[1].strip().splitlines()[2:]
+        assert [int(row.split()[0]) for row in rows] == sorted(set(free))
+        assert sum(int(n) for row in rows for n in re.findall(r"\(\d+/(\d+)\)", row)) == len(free)
+    else:
+        assert len(by_offset) == 1
     with pytest.raises(SystemExit):
         inspect_main([eval_id, "--labels", "--world", "1", "--tracking-uri", cfg.tracking.uri])
     from pipeline.report.build import main as report_main
