@@ -27,6 +27,10 @@ POSITIONS = ("rope", "nope", "alternate")
 # How a scratch model scales its attention logits: by 1/sqrt(head size) alone (Llama's), or also by log(n), n the
 # number of keys a query sees (pipeline.lm.models.log_length_attention: Scalable-Softmax with s fixed at 1).
 ATTENTION_SCALES = ("constant", "log_length")
+# How a scratch model's cell words "(x, y)" start (pipeline.lm.models.build_scratch_model): drawn like every
+# other row, or with a part linear in x and in y added, so that "x at most x1" can be one direction of the
+# embedding that holds at any distance from the grid's corner.
+COORDINATE_INITS = ("random", "linear")
 # How the word-level tokenizer cuts a number outside a cell (pipeline.lm.tokenizer.NUMBER_PIECES): one piece, or
 # one piece a digit.
 NUMBERS = ("whole", "digits")
@@ -67,6 +71,7 @@ class ModelSettings:
     numbers: str = field(default="whole", metadata={"hash_if_set": True})
     positions: str = field(default="rope", metadata={"hash_if_set": True})   # POSITIONS; scratch models only
     attention_scale: str = field(default="constant", metadata={"hash_if_set": True})  # ATTENTION_SCALES; scratch
+    coordinate_init: str = field(default="random", metadata={"hash_if_set": True})  # COORDINATE_INITS; scratch
     # RoPE's base (scratch models): 10000 is Llama's. A small base turns even the slowest rotary pair through
     # whole periods within the training lengths, so a longer test sequence meets no angle training never saw.
     rope_theta: float = field(default=10000.0, metadata={"hash_if_set": True})
@@ -93,6 +98,10 @@ class ModelSettings:
         require(self.attention_scale == "constant" or self.attn_implementation == "sdpa", "attention_scale",
                 self.attention_scale, f"constant with attn_implementation={self.attn_implementation} (log_length "
                 "is built on sdpa)")
+        require(self.coordinate_init in COORDINATE_INITS, "coordinate_init", self.coordinate_init,
+                f"one of {', '.join(COORDINATE_INITS)}")
+        require(self.coordinate_init == "random" or self.kind is ModelKind.scratch, "coordinate_init",
+                self.coordinate_init, "random for a pretrained model (kind=hf keeps its own embeddings)")
         require(self.rope_theta > 1, "rope_theta", self.rope_theta, "a base above 1")
         require(self.numbers == "whole" or self.kind is ModelKind.scratch, "numbers", self.numbers,
                 "whole for a pretrained model (kind=hf keeps its own tokenizer)")

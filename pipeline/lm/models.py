@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 from dataclasses import asdict
 from pathlib import Path
 from typing import Iterable
@@ -121,7 +122,8 @@ def build_scratch_model(tokenizer: PreTrainedTokenizerBase, settings: ModelSetti
     ``settings.positions`` (`POSITIONS`): ``rope`` builds a Llama; ``nope`` and ``alternate`` build the same
     network as transformers' SmolLM3 (a Llama whose layers each switch RoPE on or off), with RoPE in no layer or
     in layers 0, 2, ...; ``settings.rope_theta`` is RoPE's base. ``settings.attention_scale=log_length`` runs
-    `log_length_attention` and records it in the config. The global torch RNG is left as it was, so
+    `log_length_attention` and records it in the config. ``settings.coordinate_init=linear`` starts the cell
+    words' embeddings with `linear_coordinates`. The global torch RNG is left as it was, so
     building a model does not shift later draws.
     """
     s = settings
@@ -153,7 +155,27 @@ def build_scratch_model(tokenizer: PreTrainedTokenizerBase, settings: ModelSetti
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
         model = (LlamaForCausalLM if s.positions == "rope" else SmolLM3ForCausalLM)(config)
+        if s.coordinate_init == "linear":
+            linear_coordinates(model, tokenizer)
     return model.to(torch.float32)
+
+
+_CELL_WORD = re.compile(r"\((-?\d+), (-?\d+)\)")
+
+
+@torch.no_grad()
+def linear_coordinates(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBase) -> None:
+    """Add x * a + y * b to the embedding row of every cell word "(x, y)" of ``tokenizer`` (a and b: two rows
+    drawn like the others, from the global RNG), so that the cells start on a plane: a cell's x is one
+    direction of its embedding, and comparing it with a bound's is the same at any distance. The rest of each
+    row stays its own, so that equal cells still match and neighbours still differ; training moves both."""
+    weight = model.get_input_embeddings().weight
+    std = model.config.initializer_range
+    a, b = torch.randn(2, weight.shape[1]) * std
+    for word, index in tokenizer.get_vocab().items():
+        match = _CELL_WORD.fullmatch(word)
+        if match:
+            weight[index] += int(match.group(1)) * a + int(match.group(2)) * b
 
 
 def _torch_dtype(dtype: str) -> torch.dtype:
