@@ -10,16 +10,14 @@ for ``cut``. Nothing here raises on model text.
 
 from __future__ import annotations
 
-import re
 from itertools import islice
 from dataclasses import asdict, dataclass
 
 from pipeline.core.scoring import _as_text, first_difference
-from pipeline.core.texts import golden_answer, is_step_header
+from pipeline.core.texts import golden_answer, is_step_header, parse_cell
 from pipeline.core.variants import MAP_VARIANTS
 from pipeline.core.world import MOVES, Cell, World, step
 
-_CELL = re.compile(r"\((-?\d+), (-?\d+)\)")
 _HEADERS = {"Thought:": "thought", "Backtrack:": "backtrack", "Plan:": "plan"}
 
 # What a wrong line is (ErrorSite.line).
@@ -44,11 +42,6 @@ class ErrorSite:
 
     def to_dict(self) -> dict:
         return asdict(self)
-
-
-def _cell(text: str) -> Cell | None:
-    match = _CELL.fullmatch(text)
-    return (int(match.group(1)), int(match.group(2))) if match else None
 
 
 def _levels(world: World, root: Cell) -> dict[Cell, int]:
@@ -133,7 +126,7 @@ def first_wrong_line(world: World, direction: str, variant: str, text: object, s
     neighbour = label_error = None
     if kind == "label":
         root = world.start if direction == "fwd" else world.goal
-        neighbour = _neighbour_kind(world, _cell(golden[index - 1]), _levels(world, root), bfs_step or 0)
+        neighbour = _neighbour_kind(world, parse_cell(golden[index - 1]), _levels(world, root), bfs_step or 0)
         label_error = _label_error(expected, got)
     return ErrorSite(index, section, kind, bfs_step if section == "thought" else None, state, neighbour,
                      expected, got, label_error)
@@ -149,7 +142,7 @@ def label_cells(world: World, direction: str, variant: str, steps: str = "number
     """`label_kinds` with the neighbour each label is about: (line index, what it is, its cell)."""
     golden = golden_answer(world, direction, variant, "optimal", steps=steps).split("\n")
     levels = _levels(world, world.start if direction == "fwd" else world.goal)
-    labels = [(index, _cell(golden[index - 1]), bfs_step)
+    labels = [(index, parse_cell(golden[index - 1]), bfs_step)
               for index, (_, kind, bfs_step, _, _) in enumerate(_walk(golden)) if kind == "label"]
     return [(index, _neighbour_kind(world, cell, levels, bfs_step), cell) for index, cell, bfs_step in labels]
 
@@ -172,7 +165,7 @@ def line_kinds(world: World, direction: str, variant: str, steps: str = "numbere
     golden = golden_answer(world, direction, variant, "optimal", steps=steps).split("\n")
     kinds, moves = [], {"backtrack": 0, "plan": 0}
     for line, (_, kind, *_) in zip(golden, _walk(golden)):
-        if kind == "backtrack" and _cell(line) is not None:
+        if kind == "backtrack" and parse_cell(line) is not None:
             kinds.append(("backtrack cell", None))
         elif kind in moves:
             kinds.append(("backtrack move" if kind == "backtrack" else "plan", moves[kind]))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import random
+import re
 from functools import lru_cache, cache
 
 from pipeline.core.variants import DIRECTIONS, MAP_VARIANTS, VARIANTS, check, check_choice
@@ -58,6 +59,15 @@ _LABELS: dict[str, tuple[str, ...]] = {
 def cell_text(cell: Cell) -> str:
     """`(x, y)` as every text writes a cell."""
     return f"({cell[0]}, {cell[1]})"
+
+
+_CELL_TEXT = re.compile(r"\((-?\d+), (-?\d+)\)")
+
+
+def parse_cell(text: str) -> Cell | None:
+    """The cell a `cell_text` line (or cell word) names, or None for any other text."""
+    match = _CELL_TEXT.fullmatch(text)
+    return (int(match.group(1)), int(match.group(2))) if match else None
 
 
 def _listing(kind: str, cells: tuple[Cell, ...]) -> str:

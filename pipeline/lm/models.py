@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import logging
-import re
 from dataclasses import asdict
 from pathlib import Path
 from typing import Iterable
@@ -29,6 +28,7 @@ from transformers import (
 from transformers.integrations.sdpa_attention import sdpa_attention_forward
 from transformers.masking_utils import AttentionMaskInterface, sdpa_mask
 
+from pipeline.core.texts import parse_cell
 from pipeline.lm.chat import ChatFormat
 from pipeline.lm.model_settings import ATTENTION_IMPLEMENTATIONS, DTYPES, ModelKind, ModelSettings
 from pipeline.lm.tokenizer import build_word_tokenizer
@@ -160,9 +160,6 @@ def build_scratch_model(tokenizer: PreTrainedTokenizerBase, settings: ModelSetti
     return model.to(torch.float32)
 
 
-_CELL_WORD = re.compile(r"\((-?\d+), (-?\d+)\)")
-
-
 @torch.no_grad()
 def linear_coordinates(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBase) -> None:
     """Add x * a + y * b to the embedding row of every cell word "(x, y)" of ``tokenizer`` (a and b: two rows
@@ -173,9 +170,9 @@ def linear_coordinates(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBas
     std = model.config.initializer_range
     a, b = torch.randn(2, weight.shape[1]) * std
     for word, index in tokenizer.get_vocab().items():
-        match = _CELL_WORD.fullmatch(word)
-        if match:
-            weight[index] += int(match.group(1)) * a + int(match.group(2)) * b
+        cell = parse_cell(word)
+        if cell is not None:
+            weight[index] += cell[0] * a + cell[1] * b
 
 
 def _torch_dtype(dtype: str) -> torch.dtype:

@@ -12,6 +12,8 @@ from pipeline import World, conversation
 from pipeline.core.variants import BASELINES, DIRECTIONS, MAP_VARIANTS, MODES, PAPER_MAP_VARIANTS, PAPER_VARIANTS, VARIANTS
 from pipeline.core.texts import (
     INSTRUCTION,
+    cell_text,
+    parse_cell,
     PROMPTS,
     golden_answer,
     backtrack_lines,
@@ -331,3 +333,9 @@ def test_plain_step_headers_golden(example_world):
     assert all(is_step_header(h) for h in ("Step:", "Step 1:", "Step 12:")) and not is_step_header("(1, 2)")
     with pytest.raises(ValueError, match="unknown steps 'roman'; allowed: numbered, plain"):
         conversation(example_world, "fwd", "marking-deadend", "optimal", steps="roman")
+
+
+def test_parse_cell_reads_back_what_cell_text_writes_and_nothing_else():
+    for cell in ((0, 0), (-1, 5), (12, -3)):
+        assert parse_cell(cell_text(cell)) == cell
+    assert [parse_cell(text) for text in ("(1,2)", " (1, 2)", "(1, 2) ", "cut", "Step 1:")] == [None] * 5

@@ -28,9 +28,9 @@ def make_decoder(model_dir: str, *, backend: str = "hf", batch_size: int = 32, m
 
     if backend not in BACKENDS:
         raise ValueError(f"backend={backend!r} is not allowed; expected one of {', '.join(BACKENDS)}")
-    if backend == "vllm" and attention_scale(model_dir) != "constant":
-        raise ValueError(f"backend='vllm' cannot decode {model_dir}: its model scales attention by "
-                         f"{attention_scale(model_dir)}, which vLLM does not run; expected backend='hf'")
+    if backend == "vllm" and (scale := attention_scale(model_dir)) != "constant":
+        raise ValueError(f"backend='vllm' cannot decode {model_dir}: its model scales attention by {scale}, "
+                         "which vLLM does not run; expected backend='hf'")
     fmt = load_chat_format(model_dir)
     tokenizer = load_tokenizer(model_dir, trust_remote_code=trust_remote_code)
     common = dict(batch_size=batch_size, max_new_tokens=max_new_tokens)
