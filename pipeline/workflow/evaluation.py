@@ -53,6 +53,9 @@ class EvalSettings:
     # Also score this many validation worlds (`data_build.validation_worlds`: the test distribution, disjoint
     # from train and test), logged as valid_* metrics and episodes_valid.jsonl: choose recipes on these.
     n_valid: int = field(default=0, metadata={"hash_if_set": True})
+    # With ``curve``: also score every logged checkpoint on all ``n_valid`` validation worlds (valid_curve_*
+    # metrics by training step): choose a checkpoint or a budget on these, not on the test curve.
+    curve_valid: bool = field(default=False, metadata={"hash_if_set": True})
 
     def __post_init__(self) -> None:
         require(self.backend in BACKENDS, "backend", self.backend, f"one of {', '.join(BACKENDS)}")
@@ -61,6 +64,8 @@ class EvalSettings:
         for name in ("batch_size", "max_new_tokens", "max_moves", "curve_worlds"):
             require(getattr(self, name) >= 1, name, getattr(self, name), "at least 1")
         require(self.n_valid >= 0, "n_valid", self.n_valid, "0 (no validation split) or more")
+        require(not self.curve_valid or (self.curve and self.n_valid > 0), "curve_valid", self.curve_valid,
+                "false, or true with curve=true and n_valid >= 1 (it scores the curve's checkpoints on the validation worlds)")
 
 
 class PartialRecords:
@@ -160,14 +165,19 @@ def run_eval(settings: EvalSettings, model: ModelSettings, texts: TextSettings, 
     episodes.write_text("".join(json.dumps(record) + "\n" for record in records))
     mlflow.log_artifact(str(episodes))
     mlflow.log_metrics(metrics(records))
-    if settings.n_valid:
-        _evaluate_validation(settings, model, texts, data, finetune, worlds, data_settings, step_dir)
+    valid = _evaluate_validation(settings, model, texts, data, finetune, worlds, data_settings, step_dir) \
+        if settings.n_valid else None
     if settings.curve:
-        _evaluate_curve(settings, model, texts, finetune, worlds, stats, step_dir)
+        n = min(settings.curve_worlds, len(worlds))
+        _evaluate_curve(settings, model, texts, finetune, worlds[:n], stats[:n], step_dir, "")
+        if settings.curve_valid:
+            _evaluate_curve(settings, model, texts, finetune, *valid, step_dir, VALID_PREFIX)
 
 
 def _evaluate_validation(settings: EvalSettings, model: ModelSettings, texts: TextSettings, data: StepRun,
-                         finetune: StepRun, test: list[World], data_settings: DataSettings, step_dir: Path) -> None:
+                         finetune: StepRun, test: list[World], data_settings: DataSettings, step_dir: Path
+                         ) -> tuple[list[World], list[dict]]:
+    """Score the validation worlds (logged as valid_* metrics); returns them and their stats."""
     train = load_worlds(data.artifact(TRAIN_WORLDS))
     worlds = validation_worlds(data_settings, settings.n_valid, train, test)
     stats = [asdict(world_stats(world, data_settings.train_max)) for world in worlds]
@@ -177,6 +187,7 @@ def _evaluate_validation(settings: EvalSettings, model: ModelSettings, texts: Te
     episodes.write_text("".join(json.dumps(record) + "\n" for record in records))
     mlflow.log_artifact(str(episodes))
     mlflow.log_metrics({VALID_PREFIX + key: value for key, value in metrics(records).items()})
+    return worlds, stats
 
 
 def _evaluate_model(settings: EvalSettings, model: ModelSettings, texts: TextSettings, model_dir: str,
@@ -189,18 +200,24 @@ def _evaluate_model(settings: EvalSettings, model: ModelSettings, texts: TextSet
                     steps=texts.step_headers)
 
 
+# The curve's rates (`metrics`' names) and the suffix each is logged with after the curve's metric name.
+_CURVE_RATES = {"success_rate": "", "success_rate_interp": "_interp", "success_rate_extrap": "_extrap"}
+
+
 def _evaluate_curve(settings: EvalSettings, model: ModelSettings, texts: TextSettings, finetune: StepRun,
-                    worlds: list[World], stats: list[dict], step_dir: Path) -> None:
-    """Figure 3: success of every logged checkpoint on the first ``curve_worlds`` test worlds."""
+                    worlds: list[World], stats: list[dict], step_dir: Path, prefix: str) -> None:
+    """Figure 3: success of every logged checkpoint on ``worlds`` (the first ``curve_worlds`` test worlds, or
+    with ``prefix`` `VALID_PREFIX` the validation worlds), logged by training step under ``prefix``."""
     entries = mlflow.artifacts.list_artifacts(run_id=finetune.run_id, artifact_path=CHECKPOINTS_ARTIFACT)
     train_steps = sorted(int(Path(entry.path).name.split("-")[-1]) for entry in entries if entry.is_dir)
-    n = min(settings.curve_worlds, len(worlds))
     for train_step in train_steps:
         model_dir = finetune.artifact(f"{CHECKPOINTS_ARTIFACT}/step-{train_step}")
-        records = _evaluate_model(settings, model, texts, model_dir, worlds[:n], stats[:n],
-                                  step_dir / f"curve-{train_step}.partial.jsonl")
-        mlflow.log_metric(CURVE_METRIC, metrics(records)["success_rate"], step=train_step)
-        episodes = step_dir / "curve" / f"step-{train_step}.jsonl"
+        records = _evaluate_model(settings, model, texts, model_dir, worlds, stats,
+                                  step_dir / f"{prefix}curve-{train_step}.partial.jsonl")
+        rates = metrics(records)
+        mlflow.log_metrics({prefix + CURVE_METRIC + suffix: rates[key] for key, suffix in _CURVE_RATES.items()
+                            if key in rates}, step=train_step)
+        episodes = step_dir / f"{prefix}curve" / f"step-{train_step}.jsonl"
         episodes.parent.mkdir(parents=True, exist_ok=True)
         episodes.write_text("".join(json.dumps(record) + "\n" for record in records))
-        mlflow.log_artifact(str(episodes), CURVE_EPISODES_ARTIFACT)
+        mlflow.log_artifact(str(episodes), prefix + CURVE_EPISODES_ARTIFACT)

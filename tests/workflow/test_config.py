@@ -129,6 +129,7 @@ def test_marking_without_all_moves_is_refused_naming_the_values():
     ("model=hf model.path=x model.numbers=digits", "model.numbers='digits' is not allowed; expected whole for a pretrained"),
     ("eval.rules=strict", "eval.rules='strict' is not allowed; expected one of project, paper"),
     ("train.long_conversations=cut", "train.long_conversations='cut' is not allowed; expected one of drop, truncate"),
+    ("eval.curve_valid=true", "eval.curve_valid=True is not allowed; expected false, or true with curve=true and n_valid >= 1"),
 ])
 def test_bad_values_fail_before_any_work(override, message):
     cfg = _compose([override, "model.path=null"] if override == "model=hf" else override.split())

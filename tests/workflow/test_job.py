@@ -209,6 +209,22 @@ def test_checkpoint_curve_is_logged_by_training_step(tmp_path):
     assert all(0.0 <= m.value <= 1.0 for m in history)
 
 
+@pytest.mark.slow
+def test_the_validation_curve_scores_each_checkpoint_on_every_validation_world(tmp_path):
+    cfg = _cfg(tmp_path, "variant=none", "train.max_steps=4", "train.save_steps=2", "train.log_checkpoints=true",
+               "eval.curve=true", "eval.curve_worlds=2", "eval.n_valid=3", "eval.curve_valid=true")
+    run_job(cfg)
+    client, eval_id = mlflow.MlflowClient(), _job_runs(cfg)[-1].data.tags[step_run_tag("eval")]
+    for name in ("curve_success_rate", "valid_curve_success_rate"):
+        history = client.get_metric_history(eval_id, name)
+        assert sorted(m.step for m in history) == [2, 4] and all(0.0 <= m.value <= 1.0 for m in history)
+    episodes = [client.download_artifacts(eval_id, f"valid_curve/step-{step}.jsonl", str(tmp_path)) for step in (2, 4)]
+    assert [len(Path(path).read_text().splitlines()) for path in episodes] == [3, 3]
+    # The last checkpoint is the final model: its validation curve point is the validation score itself.
+    final = client.get_run(eval_id).data.metrics["valid_success_rate"]
+    assert max(client.get_metric_history(eval_id, "valid_curve_success_rate"), key=lambda m: m.step).value == final
+
+
 def test_a_curve_without_logged_checkpoints_is_refused(tmp_path):
     with pytest.raises(ConfigError, match="train.log_checkpoints=true"):
         run_job(_cfg(tmp_path, "eval.curve=true"))
