@@ -197,7 +197,8 @@ def test_the_extrapolation_study_runs_each_lever_alone_with_two_seeds_on_the_def
                        "cells": ["model.prompt"], "corner": ["data.train_deep"], "alternate": ["model.positions"],
                        "distractors": ["data.train_distractors"], "adamw": ["train.optimizer"],
                        "whole": ["model.numbers"], "log_length": ["model.attention_scale"],
-                       "linear_cells": ["model.coordinate_init"], "weight_decay": ["train.weight_decay"]}
+                       "linear_cells": ["model.coordinate_init"], "weight_decay": ["train.weight_decay"],
+                       "wide_mlp": ["model.intermediate_size"]}
 
 
 def test_cpu_study_is_the_optimal_half_of_table_1_with_two_seeds_where_asked():
