@@ -169,9 +169,8 @@ def run_eval(settings: EvalSettings, model: ModelSettings, texts: TextSettings, 
         if settings.n_valid else None
     if settings.curve:
         n = min(settings.curve_worlds, len(worlds))
-        _evaluate_curve(settings, model, texts, finetune, worlds[:n], stats[:n], step_dir, "")
-        if settings.curve_valid:
-            _evaluate_curve(settings, model, texts, finetune, *valid, step_dir, VALID_PREFIX)
+        curves = {"": (worlds[:n], stats[:n]), **({VALID_PREFIX: valid} if settings.curve_valid else {})}
+        _evaluate_curve(settings, model, texts, finetune, curves, step_dir)
 
 
 def _evaluate_validation(settings: EvalSettings, model: ModelSettings, texts: TextSettings, data: StepRun,
@@ -205,19 +204,20 @@ _CURVE_RATES = {"success_rate": "", "success_rate_interp": "_interp", "success_r
 
 
 def _evaluate_curve(settings: EvalSettings, model: ModelSettings, texts: TextSettings, finetune: StepRun,
-                    worlds: list[World], stats: list[dict], step_dir: Path, prefix: str) -> None:
-    """Figure 3: success of every logged checkpoint on ``worlds`` (the first ``curve_worlds`` test worlds, or
-    with ``prefix`` `VALID_PREFIX` the validation worlds), logged by training step under ``prefix``."""
+                    curves: dict[str, tuple[list[World], list[dict]]], step_dir: Path) -> None:
+    """Figure 3: success of every logged checkpoint on each curve's worlds (``curves``: metric prefix -> worlds
+    and stats; "" the first ``curve_worlds`` test worlds, `VALID_PREFIX` the validation worlds), by training step."""
     entries = mlflow.artifacts.list_artifacts(run_id=finetune.run_id, artifact_path=CHECKPOINTS_ARTIFACT)
     train_steps = sorted(int(Path(entry.path).name.split("-")[-1]) for entry in entries if entry.is_dir)
     for train_step in train_steps:
         model_dir = finetune.artifact(f"{CHECKPOINTS_ARTIFACT}/step-{train_step}")
-        records = _evaluate_model(settings, model, texts, model_dir, worlds, stats,
-                                  step_dir / f"{prefix}curve-{train_step}.partial.jsonl")
-        rates = metrics(records)
-        mlflow.log_metrics({prefix + CURVE_METRIC + suffix: rates[key] for key, suffix in _CURVE_RATES.items()
-                            if key in rates}, step=train_step)
-        episodes = step_dir / f"{prefix}curve" / f"step-{train_step}.jsonl"
-        episodes.parent.mkdir(parents=True, exist_ok=True)
-        episodes.write_text("".join(json.dumps(record) + "\n" for record in records))
-        mlflow.log_artifact(str(episodes), prefix + CURVE_EPISODES_ARTIFACT)
+        for prefix, (worlds, stats) in curves.items():
+            records = _evaluate_model(settings, model, texts, model_dir, worlds, stats,
+                                      step_dir / f"{prefix}curve-{train_step}.partial.jsonl")
+            rates = metrics(records)
+            mlflow.log_metrics({prefix + CURVE_METRIC + suffix: rates[key] for key, suffix in _CURVE_RATES.items()
+                                if key in rates}, step=train_step)
+            episodes = step_dir / f"{prefix}curve" / f"step-{train_step}.jsonl"
+            episodes.parent.mkdir(parents=True, exist_ok=True)
+            episodes.write_text("".join(json.dumps(record) + "\n" for record in records))
+            mlflow.log_artifact(str(episodes), prefix + CURVE_EPISODES_ARTIFACT)
