@@ -16,6 +16,8 @@ conversations through `pipeline.lm.training.trainer.finetune`, with the default 
   when that picks another precision on this machine.
 - ``default, <optimizer>``: the default with the other ``optimizer`` (``adamw`` or ``muon``,
   `pipeline.lm.training.optim`): what Muon's step costs against AdamW's.
+- ``default, Muon's Newton-Schulz in bf16``: the default with ``muon_bf16`` (when the default trains with Muon in
+  bf16): what Muon's iterations cost in fp32 against bf16.
 - ``default, paper prompt``: the same on the same worlds with the paper's instruction turns, when ``--model``
   prompts with the task turn alone (``prompt: task``, the CPU default): tokens/s barely move, conversations/s
   is what the switch buys.
@@ -132,7 +134,7 @@ def main() -> None:
     parser.add_argument("--train", default=str(ROOT / "conf" / "train" / "cpu.yaml"), help="a train yaml")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--only", choices=("padded-fp32", "packed-fp32", "packed-bf16", "default", "when-faster",
-                                           "default, paper prompt", "other-optimizer"),
+                                           "default, paper prompt", "other-optimizer", "muon-bf16"),
                         action="append", help="run only these (repeatable)")
     args = parser.parse_args()
     if not 0 <= args.skip < args.steps:
@@ -169,28 +171,33 @@ def main() -> None:
 
     measured = [peaks(args.threads)]
     print("matmul peak before: " + ", ".join(f"{k} {v:.1f} GFLOP/s" for k, v in measured[0].items()))
-    # name: (packing, bf16, bf16_when_faster, torch_compile, prompt, optimizer)
-    base = train_cfg.optimizer
-    runs = {"padded-fp32": (False, False, False, "none", prompt, base),
-            "packed-fp32": (True, False, False, "none", prompt, base),
-            "packed-bf16": (True, True, False, "none", prompt, base)}
+    # name: (packing, bf16, bf16_when_faster, torch_compile, prompt, optimizer, muon_bf16)
+    base, ns_bf16 = train_cfg.optimizer, train_cfg.muon_bf16
+    runs = {"padded-fp32": (False, False, False, "none", prompt, base, ns_bf16),
+            "packed-fp32": (True, False, False, "none", prompt, base, ns_bf16),
+            "packed-bf16": (True, True, False, "none", prompt, base, ns_bf16)}
     default = f"default ({precision}, {scope} compile)" if scope != "none" else f"packed-{precision}"
     when_faster = f"default, bf16 when faster ({faster}, {scope} compile)"
     if scope != "none":
-        runs[default] = (True, train_cfg.bf16, train_cfg.bf16_when_faster, scope, prompt, base)
+        runs[default] = (True, train_cfg.bf16, train_cfg.bf16_when_faster, scope, prompt, base, ns_bf16)
         if faster != precision:
-            runs[when_faster] = (True, train_cfg.bf16, True, scope, prompt, base)
+            runs[when_faster] = (True, train_cfg.bf16, True, scope, prompt, base, ns_bf16)
     if "paper" in sets and prompt != "paper":
-        runs["default, paper prompt"] = (*runs[default][:4], "paper", base)
+        runs["default, paper prompt"] = (*runs[default][:4], "paper", base, ns_bf16)
     # What the optimizer's own step costs: the default with the other optimizer (train.optimizer).
     other = "adamw" if base == "muon" else "muon"
     other_optimizer = f"{default}, {other}"
-    runs[other_optimizer] = (*runs[default][:5], other)
-    selected = {"default": default, "when-faster": when_faster, "other-optimizer": other_optimizer}
+    runs[other_optimizer] = (*runs[default][:5], other, False)
+    # What Muon's Newton-Schulz iterations cost in the other precision (only where the default trains in bf16).
+    muon_other = f"{default}, Muon's Newton-Schulz in {'fp32' if ns_bf16 else 'bf16'}"
+    if base == "muon" and precision == "bf16":
+        runs[muon_other] = (*runs[default][:6], not ns_bf16)
+    selected = {"default": default, "when-faster": when_faster, "other-optimizer": other_optimizer,
+                "muon-bf16": muon_other}
     wanted = {selected.get(name, name) for name in args.only or runs}
     rates: dict[str, tuple[float, float]] = {}  # name: (overall, steady) real tokens/s
     per_token: dict[str, float] = {}  # name: useful training FLOPs per real token of its conversations
-    for name, (packing, bf16, bf16_when_faster, compile_scope, run_prompt, optimizer) in runs.items():
+    for name, (packing, bf16, bf16_when_faster, compile_scope, run_prompt, optimizer, muon_bf16) in runs.items():
         if name not in wanted:
             continue
         texts = sets[run_prompt]
@@ -202,7 +209,7 @@ def main() -> None:
             learning_rate=train_cfg.learning_rate, packing=packing, bf16=bf16, bf16_when_faster=bf16_when_faster,
             pad_to_multiple_of=train_cfg.pad_to_multiple_of,
             report_to=(), logging_steps=args.steps, save_steps=10 * args.steps, torch_threads=args.threads,
-            torch_compile=compile_scope, optimizer=optimizer,
+            torch_compile=compile_scope, optimizer=optimizer, muon_bf16=muon_bf16,
         )
         clock = StepClock()
         with tempfile.TemporaryDirectory() as out:

@@ -18,6 +18,20 @@ def test_newton_schulz_takes_every_singular_value_near_one(shape):
     assert torch.nn.functional.cosine_similarity(out.flatten(), update.flatten(), dim=0) > 0.5
 
 
+def test_newton_schulz_in_bf16_flattens_the_spectrum_too_and_returns_bf16():
+    update = torch.randn(32, 128, generator=torch.Generator().manual_seed(0))
+    out = orthogonalized(update, dtype=torch.bfloat16)
+    assert out.dtype == torch.bfloat16
+    values = torch.linalg.svdvals(out.float())
+    assert values.min() > 0.5 and values.max() < 1.3
+    assert (out.float() - orthogonalized(update)).abs().max() < 0.05  # bf16 rounding, not another result
+
+
+def test_a_batch_of_matrices_is_orthogonalized_each_as_alone():
+    batch = torch.randn(3, 48, 16, generator=torch.Generator().manual_seed(0))
+    torch.testing.assert_close(orthogonalized(batch), torch.stack([orthogonalized(m) for m in batch]))
+
+
 @pytest.fixture(scope="module")
 def model():
     tokenizer = build_word_tokenizer(["Grid is from (0, 0) to (1, 1). Goal: (1, 1)\nup down cut"], frame=2)
@@ -71,3 +85,29 @@ def test_the_muon_step_has_the_size_of_adamws_typical_update():
     opt.step()
     rms = p.detach().pow(2).mean().sqrt().item()
     assert 0.2 * 1e-2 * 0.6 < rms < 0.2 * 1e-2 * 1.3
+
+
+@pytest.mark.parametrize("ns_dtype", [torch.float32, torch.bfloat16])
+def test_muon_steps_the_same_on_one_thread_as_batched_on_two(model, ns_dtype):
+    """On more than one thread the matrices of one shape are orthogonalized as one batch: the same numbers."""
+    import copy
+
+    results = []
+    threads = torch.get_num_threads()
+    try:
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            copied = copy.deepcopy(model)
+            opt = MuonAdamW(muon_groups(copied), lr=1e-2, ns_dtype=ns_dtype)
+            for step in range(3):
+                generator = torch.Generator().manual_seed(step)
+                for p in copied.parameters():
+                    p.grad = torch.randn(p.shape, generator=generator)
+                opt.step()
+            results.append([p.detach().clone() for p in copied.parameters()])
+    finally:
+        torch.set_num_threads(threads)
+    moved = [not torch.equal(a, b) for a, b in zip(results[0], model.parameters())]
+    assert all(moved)
+    for one, two in zip(*results):
+        torch.testing.assert_close(one, two)

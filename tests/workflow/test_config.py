@@ -129,6 +129,7 @@ def test_marking_without_all_moves_is_refused_naming_the_values():
     ("model=hf model.path=x model.numbers=digits", "model.numbers='digits' is not allowed; expected whole for a pretrained"),
     ("eval.rules=strict", "eval.rules='strict' is not allowed; expected one of project, paper"),
     ("train.long_conversations=cut", "train.long_conversations='cut' is not allowed; expected one of drop, truncate"),
+    ("train.muon_bf16=true train.optimizer=adamw", "train.muon_bf16=True is not allowed; expected false unless optimizer=muon"),
     ("eval.curve_valid=true", "eval.curve_valid=True is not allowed; expected false, or true with curve=true and n_valid >= 1"),
 ])
 def test_bad_values_fail_before_any_work(override, message):
@@ -296,6 +297,7 @@ def test_settings_added_since_keep_the_step_hashes_of_finished_runs():
     assert hashes("data.train_deep=0.5", toy=True)["data-build"] != "128801358476e7a8"
     assert hashes("data.train_distractors=8", toy=True)["data-build"] != "128801358476e7a8"
     assert hashes("train.optimizer=muon", toy=True)["finetune"] != "2404019bf8a1b813"
+    assert hashes("train.muon_bf16=true", toy=False)["finetune"] != new["finetune"]
 
 
 @pytest.mark.parametrize("launcher", ["local2", "slurm", "local_submitit"])

@@ -205,15 +205,17 @@ def _finetune(model, tokenizer, fmt, conversations, settings, output_dir, seed, 
                          f"({train_data.dropped} dropped)")
 
     with dynamo_environment():
+        args = _training_arguments(settings, checkpoints, seed)  # bf16 decided once: autocast and Muon's precision
         trainer = (_PackingTrainer if settings.packing else _Trainer)(
             model=model,
-            args=_training_arguments(settings, checkpoints, seed),
+            args=args,
             train_dataset=train_data,
             data_collator=RightPadCollator(tokenizer.pad_token_id, attention_mask=not settings.packing,
                                            pad_to_multiple_of=settings.pad_to_multiple_of),
             processing_class=tokenizer,
             callbacks=list(callbacks),
-            optimizers=(build_optimizer(settings.optimizer, model, settings.learning_rate, settings.weight_decay),
+            optimizers=(build_optimizer(settings.optimizer, model, settings.learning_rate, settings.weight_decay,
+                                        ns_dtype=torch.bfloat16 if settings.muon_bf16 and args.bf16 else torch.float32),
                         None),
         )
     if any(isinstance(c, ProgressCallback) for c in trainer.callback_handler.callbacks):
