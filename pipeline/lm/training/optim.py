@@ -87,7 +87,10 @@ class MuonAdamW(torch.optim.Optimizer):
             updates.append(p.grad.add(buf, alpha=mu))  # Nesterov
         together = torch.get_num_threads() > 1
         for indices in _same_shapes(params) if together else ([i] for i in range(len(params))):
-            batch = orthogonalized(torch.stack([updates[i] for i in indices]), dtype=self.ns_dtype)
+            if len(indices) == 1:  # a matrix alone: no stacking (measurably slower on one thread)
+                batch = [orthogonalized(updates[indices[0]], dtype=self.ns_dtype)]
+            else:
+                batch = orthogonalized(torch.stack([updates[i] for i in indices]), dtype=self.ns_dtype)
             for i, update in zip(indices, batch):
                 p = params[i]
                 p.add_(update.to(p.dtype), alpha=-group["lr"] * 0.2 * math.sqrt(max(p.shape)))
