@@ -1,3 +1,5 @@
+import copy
+
 import pytest
 import torch
 
@@ -90,8 +92,6 @@ def test_the_muon_step_has_the_size_of_adamws_typical_update():
 @pytest.mark.parametrize("ns_dtype", [torch.float32, torch.bfloat16])
 def test_muon_steps_the_same_on_one_thread_as_batched_on_two(model, ns_dtype):
     """On more than one thread the matrices of one shape are orthogonalized as one batch: the same numbers."""
-    import copy
-
     results = []
     threads = torch.get_num_threads()
     try:
