@@ -199,6 +199,31 @@ def cognitive_map(
     return lines
 
 
+def edge_label_spans(world: World, answer: str, largest: tuple[int, int]) -> list[tuple[int, int]]:
+    """(start, end) character spans in ``answer`` of the labels whose neighbour lies just outside the grid
+    along an axis on which the grid is as long as the largest train grid (``largest``: sides X, Y).
+
+    A grid of side at most L holds no cell L or more from its low (or high) corner, so such a neighbour's `cut`
+    is explained as well by "beyond the grid's bound" as by "L cells from the opposite corner", and the train
+    worlds never tell the two rules apart; a larger world does (README, "Extrapolation").
+    `DataSettings.mask_edge_labels` (not in the paper) leaves these labels out of the loss. Only neighbour
+    lines name cells outside the grid, so every such cell line's next line is its label."""
+    lines = answer.split("\n")
+    starts = [0]
+    for line in lines:
+        starts.append(starts[-1] + len(line) + 1)
+    spans = []
+    for i, line in enumerate(lines[:-1]):
+        cell = parse_cell(line)
+        if cell is None or world.in_grid(cell):
+            continue
+        x, y = cell
+        across_x = not world.x0 <= x <= world.x1
+        if (world.size_x if across_x else world.size_y) == largest[0 if across_x else 1]:
+            spans.append((starts[i + 1], starts[i + 1] + len(lines[i + 1])))
+    return spans
+
+
 def _padded_names(world: World) -> list[str]:
     """`cell_text` of every cell of the padded grid, by `World.index` (the map prints border cells too)."""
     low, high = world.y0 - 1, world.y1 + 2

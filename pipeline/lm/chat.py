@@ -7,7 +7,8 @@ merges across its joins: Llama-3's encodes ``[INST] You`` as ``[``, ``INST``, ``
 encoded apart gives `` ``, ``You`` (the paper's code tokenizes the whole rendered string at once). The pieces
 end where a decoder's input does (after the gpt prefix; after a turn end), so the ids of a prefix of the
 conversation are exactly a prefix of the ids of the whole: a decoder appends the next observation to a cached
-sequence without re-encoding the history. Loss targets are the gpt values and their ``turn_end`` token(s).
+sequence without re-encoding the history. Loss targets are the gpt values (less the spans a turn lists as
+`UNTRAINED`) and their ``turn_end`` token(s).
 """
 
 from __future__ import annotations
@@ -18,6 +19,9 @@ from pathlib import Path
 from typing import Optional, Protocol, Sequence
 
 IGNORE_INDEX = -100
+# A gpt turn's optional key: the [start, end) character spans of its value that are no loss targets (encoded
+# as pieces of their own, cut at the spans' ends).
+UNTRAINED = "untrained"
 
 
 class TextTokenizer(Protocol):
@@ -74,9 +78,21 @@ def _pieces(fmt: ChatFormat, turns: Sequence[dict], generation_prompt: bool) -> 
         if turn["from"] != "gpt":
             context += _context(fmt, turn, index == 0)
             continue
-        pieces += [(context + fmt.gpt_prefix, False), (turn["value"], True), (fmt.turn_end, True)]
+        pieces += [(context + fmt.gpt_prefix, False), *_value_pieces(turn), (fmt.turn_end, True)]
         context = ""
     return pieces + [(context + (fmt.gpt_prefix if generation_prompt else ""), False)]
+
+
+def _value_pieces(turn: dict) -> list[tuple[str, bool]]:
+    """A gpt value as (text, is a loss target) pieces: whole, or cut around its `UNTRAINED` spans."""
+    value, pieces, at = turn["value"], [], 0
+    for start, end in sorted(turn.get(UNTRAINED, ())):
+        if not at <= start <= end <= len(value):
+            raise ValueError(f"{UNTRAINED} span [{start}, {end}) of a gpt turn: expected spans in order, without "
+                             f"overlap, within its value of {len(value)} characters")
+        pieces += [(value[at:start], True), (value[start:end], False)]
+        at = end
+    return [piece for piece in pieces + [(value[at:], True)] if piece[0]] or [(value, True)]
 
 
 def encode_conversation(

@@ -18,9 +18,10 @@ import mlflow
 from tqdm import tqdm
 
 from pipeline.core.generators import GeneratorConfig, check_deep, check_ranges, generate_worlds, world_stats
-from pipeline.core.texts import DEFAULT_PROMPT, conversation, listed_obstacles
+from pipeline.core.texts import DEFAULT_PROMPT, conversation, edge_label_spans, listed_obstacles
 from pipeline.core.variants import BY_NAME, text_direction
 from pipeline.core.world import World, load_worlds, save_worlds
+from pipeline.lm.chat import UNTRAINED
 from pipeline.lm.tokenizer import count_pieces, piece_set
 from pipeline.workflow.paper_data import PAPER_WORD, ResolvedFile, file_sha256, resolve
 from pipeline.workflow.steps import StepRun
@@ -68,6 +69,10 @@ class DataSettings:
     # outside the grid (`texts.listed_obstacles`), so the lists are as long as a larger world's; the worlds,
     # answers, validation and test texts are unchanged.
     train_distractors: int = field(default=0, metadata={"hash_if_set": True})
+    # Not in the paper: the labels of neighbours just outside a train grid as long as the largest train grid on
+    # that axis are no loss targets (`texts.edge_label_spans`: the train worlds cannot tell "beyond the bound"
+    # from "too far from the corner" there); the texts themselves are unchanged.
+    mask_edge_labels: bool = field(default=False, metadata={"hash_if_set": True})
 
     def __post_init__(self) -> None:
         # As lists, so a message writes a range the same way whether it came as a list, a tuple or from the config.
@@ -210,14 +215,19 @@ def _write_jsonl(path: Path, rows: Iterable[dict]) -> None:
             handle.write(json.dumps(row, separators=(", ", ": ")) + "\n")
 
 
-def _conversations(worlds: list[World], spec: TextSettings, desc: str, distractors: int = 0, frame: int = 0
-                   ) -> Iterable[dict]:
+def _conversations(worlds: list[World], spec: TextSettings, desc: str, distractors: int = 0, frame: int = 0,
+                   mask_edge: tuple[int, int] | None = None) -> Iterable[dict]:
+    """Each world's conversation; with ``mask_edge`` (the largest train sides) the first answer's edge labels
+    (`edge_label_spans`) are listed under `UNTRAINED`."""
     direction = spec.direction or "fwd"
     for index, world in enumerate(tqdm(worlds, desc=desc, unit="world", leave=False)):
         # Each world's DFS walk gets its own seed, so the walks do not depend on the split's order.
         turns = conversation(world, direction, spec.variant, spec.mode, seed=spec.seed * 1_000_003 + index,
                              prompt=spec.prompt, steps=spec.step_headers,
                              obstacles=listed_obstacles(world, distractors, frame))
+        if mask_edge is not None:
+            answer = next(turn for turn in turns if turn["from"] == "gpt")
+            answer[UNTRAINED] = [list(span) for span in edge_label_spans(world, answer["value"], mask_edge)]
         yield {"id": index, "conversations": turns}
 
 
@@ -226,15 +236,17 @@ def _summary(values: list[int]) -> dict:
 
 
 def write_dataset(out_dir: str | Path, train: list[World], test: list[World], spec: TextSettings,
-                  train_max: tuple[int, int], distractors: int = 0, frame: int = 0) -> dict:
+                  train_max: tuple[int, int], distractors: int = 0, frame: int = 0, mask_edge: bool = False) -> dict:
     """Write worlds, conversations and stats under ``out_dir``; return the summary (also written).
-    ``distractors``, ``frame``: the train prompts' extra obstacle-list cells (`DataSettings.train_distractors`)."""
+    ``distractors``, ``frame``: the train prompts' extra obstacle-list cells (`DataSettings.train_distractors`);
+    ``mask_edge``: the train answers' edge labels are no loss targets (`DataSettings.mask_edge_labels`)."""
     out = Path(out_dir)
     (out / "worlds").mkdir(parents=True, exist_ok=True)
     save_worlds(out / TRAIN_WORLDS, train)
     save_worlds(out / TEST_WORLDS, test)
     token_lengths: list[int] = []
     train_words: set[str] = set()
+    untrained_labels = [0]
     test_words: list[frozenset[str]] = []
 
     def measured(rows: Iterable[dict]) -> Iterable[dict]:
@@ -242,6 +254,7 @@ def write_dataset(out_dir: str | Path, train: list[World], test: list[World], sp
             token_lengths.append(sum(count_pieces(turn["value"], spec.numbers) + 2 for turn in row["conversations"]))
             for turn in row["conversations"]:
                 train_words.update(piece_set(turn["value"], spec.numbers))
+                untrained_labels[0] += len(turn.get(UNTRAINED, ()))
             yield row
 
     def words_of(rows: Iterable[dict]) -> Iterable[dict]:
@@ -250,7 +263,8 @@ def write_dataset(out_dir: str | Path, train: list[World], test: list[World], sp
                                                   for turn in row["conversations"])))
             yield row
 
-    _write_jsonl(out / TRAIN_CONVERSATIONS, measured(_conversations(train, spec, "train texts", distractors, frame)))
+    train_rows = _conversations(train, spec, "train texts", distractors, frame, train_max if mask_edge else None)
+    _write_jsonl(out / TRAIN_CONVERSATIONS, measured(train_rows))
     train_tokens = list(token_lengths)
     # Test conversations are the golden references (the model is prompted with their turns before the first answer).
     _write_jsonl(out / TEST_CONVERSATIONS, words_of(_conversations(test, spec, "test texts")))
@@ -266,6 +280,7 @@ def write_dataset(out_dir: str | Path, train: list[World], test: list[World], sp
         "test_up_right_only": sum(s["up_right_only"] for s in test_stats) / max(len(test_stats), 1),
         "test_interpolated": sum(s["interpolated"] for s in test_stats) / max(len(test_stats), 1),
         "untrained_words": untrained_words(train_words, test_words),
+        "untrained_edge_labels": untrained_labels[0],
         "sha256": dataset_sha256(out),
     }
     (out / SUMMARY).write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
@@ -317,7 +332,8 @@ def run_data_build(settings: DataSettings, texts: TextSettings, files: dict[str,
             mlflow.set_tags({f"{split}_file": str(found.path), f"{split}_file_sha256": found.sha256})
     train, test = build_splits(settings, files)
     out = step_dir / "dataset"
-    summary = write_dataset(out, train, test, texts, settings.train_max, settings.train_distractors, settings.frame)
+    summary = write_dataset(out, train, test, texts, settings.train_max, settings.train_distractors, settings.frame,
+                            settings.mask_edge_labels)
     mlflow.set_tag("dataset_sha256", summary["sha256"])
     mlflow.log_metrics({
         "n_train": summary["n_train"], "n_test": summary["n_test"],
@@ -326,6 +342,7 @@ def run_data_build(settings: DataSettings, texts: TextSettings, files: dict[str,
         "test_up_right_only": summary["test_up_right_only"], "test_interpolated": summary["test_interpolated"],
         "untrained_words": summary["untrained_words"]["n_words"],
         "test_worlds_untrained_words": summary["untrained_words"]["n_worlds"],
+        "untrained_edge_labels": summary["untrained_edge_labels"],
     })
     line = untrained_words_line(summary["untrained_words"])
     if line:

@@ -20,6 +20,7 @@ from pipeline.core.texts import (
     cognitive_map,
     cot_thought,
     dfs_moves,
+    edge_label_spans,
     free_cells,
     listed_obstacles,
     is_step_header,
@@ -339,3 +340,22 @@ def test_parse_cell_reads_back_what_cell_text_writes_and_nothing_else():
     for cell in ((0, 0), (-1, 5), (12, -3)):
         assert parse_cell(cell_text(cell)) == cell
     assert [parse_cell(text) for text in ("(1,2)", " (1, 2)", "(1, 2) ", "cut", "Step 1:")] == [None] * 5
+
+
+def test_edge_labels_are_the_cut_of_neighbours_beyond_a_grid_as_long_as_the_largest_train_grid():
+    # Grid (1, 2)-(2, 5): 2 wide, 4 high. With train sides up to 4, the cells just above and below it are the
+    # edge labels' neighbours (a 4-high grid), those left and right of it are not (it is 2 wide, not 4).
+    world = World(2, 4, 1, 2, ((2, 4), (2, 2)), (), (1, 2), (2, 5))
+    answer = golden_answer(world, "bwd", "marking-deadend", "optimal")
+    assert answer.startswith("Thought:\nStep 1:\n(2, 6)\ncut\n(2, 4)\ncut\n(1, 5)\nright\n(3, 5)\ncut\nStep 2:\n"
+                             "(1, 6)\ncut\n(1, 4)\nup\n(0, 5)\ncut\n")
+    spans = edge_label_spans(world, answer, (4, 4))
+    assert spans == [(24, 27), (78, 81)]
+    assert [answer[a - 7:b] for a, b in spans] == ["(2, 6)\ncut", "(1, 6)\ncut"]
+    # As wide as the widest train grid (2): the left and right neighbours' labels too; neither axis: none.
+    wide = [answer[a - 7:b] for a, b in edge_label_spans(world, answer, (2, 6))]
+    assert wide[:4] == ["(3, 5)\ncut", "(0, 5)\ncut", "(0, 4)\ncut", "(0, 3)\ncut"]
+    assert all(parse_cell(text[:6]) is not None and not world.in_grid(parse_cell(text[:6])) for text in wide)
+    assert edge_label_spans(world, answer, (3, 3)) == []
+    # Cells inside the grid (the backtrack, every expanded neighbour) are never edge cells.
+    assert edge_label_spans(world, "Backtrack:\n(1, 2)\nup\n(1, 3)", (4, 4)) == []

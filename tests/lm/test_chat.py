@@ -12,7 +12,7 @@ from transformers import PreTrainedTokenizerFast
 from conftest import ROOT
 from fastchat_reference import paper_conversations, paper_format, render_conversation
 from pipeline.lm.chat import (
-    IGNORE_INDEX, ChatFormat, encode_conversation, encode_followup, encode_prompt, stop_ids,
+    IGNORE_INDEX, UNTRAINED, ChatFormat, encode_conversation, encode_followup, encode_prompt, stop_ids,
     turn_end_ids,
 )
 
@@ -53,6 +53,20 @@ def test_ids_are_the_rendered_text_and_the_loss_covers_gpt_texts_and_their_ends_
     # Nothing of the human turns, the [INST]/[/INST] markers or the first BOS is a target.
     first_gpt = tokenizer.decode(ids[: targets[0][0]])
     assert first_gpt == "<|begin_of_text|>[INST] Rules here.[/INST]\n"
+
+
+def test_untrained_spans_of_a_gpt_turn_keep_its_ids_and_drop_their_targets(tokenizer):
+    fmt = paper_format()
+    marked = [*TURNS[:3], {**TURNS[3], UNTRAINED: [[5, 6], [0, 1]]}]   # "P" and "\n" of "Plan:\nup"
+    ids, labels = encode_conversation(tokenizer, fmt, marked)
+    whole, whole_labels = encode_conversation(tokenizer, fmt, TURNS)
+    assert ids == whole
+    dropped = [i for i, (a, b) in enumerate(zip(labels, whole_labels)) if a != b]
+    assert [tokenizer.decode([whole[i]]) for i in dropped] == ["P", "\n"]
+    assert all(labels[i] == IGNORE_INDEX for i in dropped)
+    for bad in ([[3, 2]], [[0, 4], [2, 6]], [[0, 99]]):
+        with pytest.raises(ValueError, match="untrained span"):
+            encode_conversation(tokenizer, fmt, [*TURNS[:3], {**TURNS[3], UNTRAINED: bad}])
 
 
 def test_decoding_stops_at_end_of_text_and_closes_the_turn_before_the_next_observation(tokenizer):

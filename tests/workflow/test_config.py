@@ -199,7 +199,7 @@ def test_the_extrapolation_study_runs_each_lever_alone_with_two_seeds_on_the_def
                        "distractors": ["data.train_distractors"], "adamw": ["train.optimizer"],
                        "whole": ["model.numbers"], "log_length": ["model.attention_scale"],
                        "linear_cells": ["model.coordinate_init"], "weight_decay": ["train.weight_decay"],
-                       "wide_mlp": ["model.intermediate_size"]}
+                       "wide_mlp": ["model.intermediate_size"], "edge_labels": ["data.mask_edge_labels"]}
 
 
 def test_cpu_study_is_the_optimal_half_of_table_1_with_two_seeds_where_asked():
@@ -296,6 +296,7 @@ def test_settings_added_since_keep_the_step_hashes_of_finished_runs():
     assert hashes("train.long_conversations=truncate", toy=True)["finetune"] != "2404019bf8a1b813"
     assert hashes("data.train_deep=0.5", toy=True)["data-build"] != "128801358476e7a8"
     assert hashes("data.train_distractors=8", toy=True)["data-build"] != "128801358476e7a8"
+    assert hashes("data.mask_edge_labels=true", toy=True)["data-build"] != "128801358476e7a8"
     assert hashes("train.optimizer=muon", toy=True)["finetune"] != "2404019bf8a1b813"
     assert hashes("train.muon_bf16=true", toy=False)["finetune"] != new["finetune"]
 

@@ -4,7 +4,7 @@ import json
 
 import pytest
 
-from pipeline.lm.chat import read_conversations
+from pipeline.lm.chat import UNTRAINED, read_conversations
 from pipeline.lm.model_settings import ModelSettings
 from pipeline.workflow.data_build import (
     DataSettings,
@@ -145,6 +145,27 @@ def test_distractors_change_the_train_prompts_only(tmp_path):
     assert min(longer) >= 0 and sum(n > 0 for n in longer) > len(longer) // 2
     with pytest.raises(ValueError, match="train_distractors=-1 is not allowed; expected an integer >= 0"):
         _data(train_distractors=-1)
+
+
+def test_masked_edge_labels_list_cut_labels_of_train_answers_and_change_no_text(tmp_path):
+    """`mask_edge_labels` (not in the paper): the same worlds and texts; each train answer lists its edge labels
+    (`texts.edge_label_spans`) as untrained spans, each a `cut` after a cell outside the grid; test texts are
+    byte for byte as they were; the summary counts them."""
+    data = _data(mask_edge_labels=True)
+    assert build_splits(data) == build_splits(_data())
+    train, test = build_splits(data)
+    spec = TextSettings.of("bwd", "marking-deadend", "optimal")
+    plain = write_dataset(tmp_path / "plain", train, test, spec, (4, 4))
+    masked = write_dataset(tmp_path / "masked", train, test, spec, (4, 4), mask_edge=True)
+    assert (tmp_path / "plain" / TEST_CONVERSATIONS).read_bytes() == (tmp_path / "masked" / TEST_CONVERSATIONS).read_bytes()
+    before, after = (read_conversations(tmp_path / name / TRAIN_CONVERSATIONS) for name in ("plain", "masked"))
+    assert [[t["value"] for t in c] for c in before] == [[t["value"] for t in c] for c in after]
+    answers = [c[1] for c in after]
+    spans = [(a["value"], span) for a in answers for span in a[UNTRAINED]]
+    assert plain["untrained_edge_labels"] == 0 and masked["untrained_edge_labels"] == len(spans) > 0
+    assert {value[a:b] for value, (a, b) in spans} == {"cut"}
+    assert all(value[a - 1] == "\n" and value[b:b + 1] in ("", "\n") for value, (a, b) in spans)
+    assert sum(bool(a[UNTRAINED]) for a in answers) > len(answers) // 4
 
 
 def test_deep_train_worlds_leave_the_test_and_validation_splits_as_they_were():
