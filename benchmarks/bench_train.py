@@ -18,6 +18,9 @@ conversations through `pipeline.lm.training.trainer.finetune`, with the default 
   `pipeline.lm.training.optim`): what Muon's step costs against AdamW's.
 - ``default, Muon's Newton-Schulz in bf16``: the default with ``muon_bf16`` (when the default trains with Muon in
   bf16): what Muon's iterations cost in fp32 against bf16.
+- ``default, <kernel> attention``: the default with the other of ``sdpa`` and ``eager`` for
+  ``model.attn_implementation`` (the same attention, computed by torch's fused kernel or as two matmuls and a
+  softmax that the compiler fuses): what the attention kernel costs at these short sequences.
 - ``default, paper prompt``: the same on the same worlds with the paper's instruction turns, when ``--model``
   prompts with the task turn alone (``prompt: task``, the CPU default): tokens/s barely move, conversations/s
   is what the switch buys.
@@ -44,6 +47,7 @@ import os
 import statistics
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -134,7 +138,8 @@ def main() -> None:
     parser.add_argument("--train", default=str(ROOT / "conf" / "train" / "cpu.yaml"), help="a train yaml")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--only", choices=("padded-fp32", "packed-fp32", "packed-bf16", "default", "when-faster",
-                                           "default, paper prompt", "other-optimizer", "muon-bf16"),
+                                           "default, paper prompt", "other-optimizer", "muon-bf16",
+                                           "other-attention"),
                         action="append", help="run only these (repeatable)")
     args = parser.parse_args()
     if not 0 <= args.skip < args.steps:
@@ -192,8 +197,15 @@ def main() -> None:
     muon_other = f"{default}, Muon's Newton-Schulz in {'fp32' if ns_bf16 else 'bf16'}"
     if base == "muon" and precision == "bf16":
         runs[muon_other] = (*runs[default][:6], not ns_bf16)
+    # What the attention kernel costs: the default with the other of sdpa and eager (log-length scaling is sdpa's).
+    attention: dict[str, str] = {}  # name: model.attn_implementation where it is not the model yaml's
+    other_attention = {"sdpa": "eager", "eager": "sdpa"}.get(model_cfg.attn_implementation)
+    attention_run = f"{default}, {other_attention} attention"
+    if other_attention and model_cfg.attention_scale == "constant":
+        runs[attention_run] = runs[default]
+        attention[attention_run] = other_attention
     selected = {"default": default, "when-faster": when_faster, "other-optimizer": other_optimizer,
-                "muon-bf16": muon_other}
+                "muon-bf16": muon_other, "other-attention": attention_run}
     wanted = {selected.get(name, name) for name in args.only or runs}
     rates: dict[str, tuple[float, float]] = {}  # name: (overall, steady) real tokens/s
     per_token: dict[str, float] = {}  # name: useful training FLOPs per real token of its conversations
@@ -213,7 +225,8 @@ def main() -> None:
         )
         clock = StepClock()
         with tempfile.TemporaryDirectory() as out:
-            model = make_model(model_cfg, tokenizer, seed=args.seed)
+            run_model = replace(model_cfg, attn_implementation=attention.get(name, model_cfg.attn_implementation))
+            model = make_model(run_model, tokenizer, seed=args.seed)
             result = finetune(model, tokenizer, WORD_LEVEL_FORMAT, texts, settings, out, seed=args.seed,
                               max_length=max(run_lengths), callbacks=[clock])
         steady = clock.steady(args.skip)
