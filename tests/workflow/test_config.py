@@ -93,6 +93,11 @@ def test_models_trained_from_scratch_drop_the_instruction_and_pretrained_ones_ke
     assert _compose(["model=llama3_8b"]).model.log_model == "reference"
 
 
+def test_the_cpu_default_computes_attention_as_matmuls_and_the_paper_model_keeps_sdpa():
+    assert _compose().model.attn_implementation == "eager" and _compose(["model=toy"]).model.attn_implementation == "sdpa"
+    assert _compose(["model=llama3_8b"]).model.attn_implementation == "sdpa"
+
+
 def test_aliases_and_command_line_switches_win_over_presets():
     assert validate(_compose(["variant=marking"])).variant == "marking-deadend"
     assert validate(_compose(["variant=nomarking"])).variant == "no-marking"
@@ -197,7 +202,8 @@ def test_the_extrapolation_study_runs_each_lever_alone_with_two_seeds_on_the_def
     assert changed == {"default": [], "named": ["named"], "plain": ["model.step_headers"],
                        "cells": ["model.prompt"], "corner": ["data.train_deep"], "alternate": ["model.positions"],
                        "distractors": ["data.train_distractors"], "adamw": ["train.optimizer"],
-                       "whole": ["model.numbers"], "log_length": ["model.attention_scale"],
+                       "whole": ["model.numbers"],
+                       "log_length": ["model.attention_scale", "model.attn_implementation"],
                        "linear_cells": ["model.coordinate_init"], "weight_decay": ["train.weight_decay"],
                        "wide_mlp": ["model.intermediate_size"], "edge_labels": ["data.mask_edge_labels"]}
 
@@ -278,7 +284,8 @@ def test_settings_added_since_keep_the_step_hashes_of_finished_runs():
         job = validate(cfg)
         return step_hashes(job, cfg.seed, job_texts(cfg, job))
 
-    old_default = ("data.train_deep=0", "train.optimizer=adamw", "train.bf16_when_faster=false", "model.numbers=whole")
+    old_default = ("data.train_deep=0", "train.optimizer=adamw", "train.bf16_when_faster=false", "model.numbers=whole",
+                   "model.attn_implementation=sdpa")
     assert hashes("eval.n_valid=0", *old_default, toy=False) == {
         "data-build": "9084abe767f5f3cf", "finetune": "9f74feb50b9e71d8", "eval": "7a5f1b9983e9f635"}
     assert hashes(*old_default, toy=False)["eval"] != "7a5f1b9983e9f635"
@@ -299,6 +306,9 @@ def test_settings_added_since_keep_the_step_hashes_of_finished_runs():
     assert hashes("data.mask_edge_labels=true", toy=True)["data-build"] != "128801358476e7a8"
     assert hashes("train.optimizer=muon", toy=True)["finetune"] != "2404019bf8a1b813"
     assert hashes("train.muon_bf16=true", toy=False)["finetune"] != new["finetune"]
+    # Eager attention (the CPU default since) trains other numbers than sdpa: a new step; sdpa's runs stay reusable.
+    assert hashes("model.attn_implementation=sdpa", toy=False)["finetune"] != new["finetune"]
+    assert hashes("model.attn_implementation=sdpa", toy=False)["data-build"] == new["data-build"]
 
 
 @pytest.mark.parametrize("launcher", ["local2", "slurm", "local_submitit"])
