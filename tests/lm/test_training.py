@@ -289,6 +289,19 @@ def test_regional_compile_trains_what_eager_trains_and_saves_plain_weights(token
     assert all(torch.allclose(a[k], b[k], atol=1e-4) for k in a)
 
 
+def test_eager_attention_trains_what_sdpa_trains_on_packed_batches(tokenizer, conversations, tmp_path):
+    # Packed batches are right-padded with no attention mask: eager attention (the CPU default) must still be
+    # causal, or its losses would part from sdpa's at the first step.
+    settings = TrainSettings(max_steps=4, **QUIET)
+    losses = {}
+    for kernel in ("sdpa", "eager"):
+        model = build_scratch_model(tokenizer, ModelSettings(**TINY, attn_implementation=kernel), seed=0)
+        assert model.config._attn_implementation == kernel
+        losses[kernel] = finetune(model, tokenizer, WORD_LEVEL_FORMAT, conversations, settings,
+                                  tmp_path / kernel).final_loss
+    assert losses["eager"] == pytest.approx(losses["sdpa"], rel=1e-4)
+
+
 def test_bf16_autocast_trains_and_keeps_fp32_master_weights(tokenizer, conversations, tmp_path):
     repeated = conversations[:2] * 24
     settings = TrainSettings(max_steps=30, bf16=True, **QUIET)
