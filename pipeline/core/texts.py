@@ -14,8 +14,13 @@ from pipeline.core.world import MOVES, Cell, World, move_between, step
 # the same English text in every conversation: a model trained from scratch learns nothing from it, yet pays
 # for its tokens in every step; pretrained models keep the paper's prompt. The paper lists only the pits and
 # walls, so a free cell is known by no match among them; "cells" lists the free cells too, so every cell
-# of the grid is known by a match (the lookup a label needs stays a lookup as the lists grow).
-PROMPTS: tuple[str, ...] = ("paper", "task", "cells")
+# of the grid is known by a match (the lookup a label needs stays a lookup as the lists grow). "axes" (not in
+# the paper) lists the grid's columns and rows after its bounds, each in an order drawn from the world alone, so
+# whether a cell lies inside the grid is a match of its x among the columns and its y among the rows, not a
+# comparison with the bounds: training grids (sides 2-4) never hold a cell 4 or more from their low corner, so
+# "beyond the bound" and "4 from the corner" agree on every training world, while a match is the same rule at
+# any size.
+PROMPTS: tuple[str, ...] = ("paper", "task", "cells", "axes")
 # The job's default (`ModelSettings.prompt`) and every signature's: the task turn alone, for the models trained
 # from scratch; the paper-scale presets choose "paper".
 DEFAULT_PROMPT = "task"
@@ -110,14 +115,29 @@ def listed_obstacles(world: World, distractors: int = 0, frame: int = 0) -> Obst
     return tuple(pits), tuple(walls)
 
 
-def task_text(world: World, cells: bool = False, obstacles: Obstacles | None = None) -> str:
+def grid_axes(world: World) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """The grid's columns (x values) and rows (y values), each in an order drawn from the world alone (so a
+    list position tells nothing, as in `free_cells`)."""
+    rng = random.Random(f"axes:{world.x0},{world.y0},{world.x1},{world.y1}")
+    columns, rows = list(range(world.x0, world.x1 + 1)), list(range(world.y0, world.y1 + 1))
+    rng.shuffle(columns)
+    rng.shuffle(rows)
+    return tuple(columns), tuple(rows)
+
+
+def task_text(world: World, prompt: str = DEFAULT_PROMPT, obstacles: Obstacles | None = None) -> str:
     """The task part of the third human turn (docs/spec.md §2.3), ending in a newline; the observation follows.
-    ``cells``: the free cells are listed after the walls (the "cells" prompt, not in the paper). ``obstacles``:
-    the (pits, walls) lists to write instead of the world's own (`listed_obstacles`)."""
+    ``prompt`` (`PROMPTS`): "cells" lists the free cells after the walls, "axes" the grid's columns and rows
+    after its bounds (neither is in the paper); the others write the paper's task. ``obstacles``: the (pits,
+    walls) lists to write instead of the world's own (`listed_obstacles`)."""
     pits, walls = obstacles or (world.pits, world.walls)
-    listed = f" {_listing('free cell', free_cells(world))}" if cells else ""
+    listed = f" {_listing('free cell', free_cells(world))}" if prompt == "cells" else ""
+    axes = ""
+    if prompt == "axes":
+        columns, rows = grid_axes(world)
+        axes = f" Columns: {', '.join(map(str, columns))}. Rows: {', '.join(map(str, rows))}."
     return (
-        f"Grid is from {cell_text((world.x0, world.y0))} to {cell_text((world.x1, world.y1))}. "
+        f"Grid is from {cell_text((world.x0, world.y0))} to {cell_text((world.x1, world.y1))}.{axes} "
         f"Goal: {cell_text(world.goal)}\n"
         f"Current: {cell_text(world.start)}\n"
         f"{_listing('pit', pits)} {_listing('wall', walls)}{listed}\n"
@@ -134,18 +154,19 @@ def observation(world: World, cell: Cell) -> str:
     return "\n".join(lines)
 
 
-def first_human_text(world: World, cells: bool = False, obstacles: Obstacles | None = None) -> str:
-    """The full third turn: task text (``cells``: with the free cells listed; ``obstacles``: see `task_text`)
-    then the observation at the start."""
-    return task_text(world, cells, obstacles) + observation(world, world.start)
+def first_human_text(world: World, prompt: str = DEFAULT_PROMPT, obstacles: Obstacles | None = None) -> str:
+    """The full third turn: task text (``prompt`` and ``obstacles``: see `task_text`) then the observation at
+    the start."""
+    return task_text(world, prompt, obstacles) + observation(world, world.start)
 
 
 def prompt_turns(world: World, prompt: str = DEFAULT_PROMPT, obstacles: Obstacles | None = None) -> list[dict[str, str]]:
     """What a model is prompted with: the paper's three turns (``prompt="paper"``), the task turn alone
-    (``"task"``, the default), or the task turn alone with the free cells listed (``"cells"``). ``obstacles``:
+    (``"task"``, the default), or the task turn alone with the free cells (``"cells"``) or the grid's columns and
+    rows (``"axes"``) listed. ``obstacles``:
     the (pits, walls) lists to write instead of the world's own (`listed_obstacles`)."""
     check_choice("prompt", prompt, PROMPTS)
-    task = {"from": "human", "value": first_human_text(world, cells=prompt == "cells", obstacles=obstacles)}
+    task = {"from": "human", "value": first_human_text(world, prompt, obstacles)}
     if prompt != "paper":
         return [task]
     return [{"from": "human", "value": INSTRUCTION}, {"from": "gpt", "value": ACKNOWLEDGEMENT}, task]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import re
 
 import pytest
@@ -13,6 +14,7 @@ from pipeline.core.variants import BASELINES, DIRECTIONS, MAP_VARIANTS, MODES, P
 from pipeline.core.texts import (
     INSTRUCTION,
     cell_text,
+    grid_axes,
     parse_cell,
     PROMPTS,
     golden_answer,
@@ -230,13 +232,13 @@ def test_maps_anywhere_in_the_plane(example_world, offset):
 
 
 def test_task_prompt_is_the_paper_prompt_without_the_instruction(example_world, golden):
-    assert PROMPTS == ("paper", "task", "cells")
+    assert PROMPTS == ("paper", "task", "cells", "axes")
     paper, task = prompt_turns(example_world, "paper"), prompt_turns(example_world, "task")
     assert task == paper[2:] == [{"from": "human", "value": golden["turn_3"]}]
     for mode in MODES:
         assert conversation(example_world, "bwd", "marking-deadend", mode, prompt="task") == \
             conversation(example_world, "bwd", "marking-deadend", mode, prompt="paper")[2:]
-    with pytest.raises(ValueError, match="unknown prompt 'none'; allowed: paper, task, cells"):
+    with pytest.raises(ValueError, match="unknown prompt 'none'; allowed: paper, task, cells, axes"):
         prompt_turns(example_world, "none")
 
 
@@ -253,6 +255,34 @@ def test_cells_prompt_golden(example_world, golden):
     for mode in MODES:
         assert conversation(example_world, "bwd", "marking-deadend", mode, prompt="cells")[1:] == \
             conversation(example_world, "bwd", "marking-deadend", mode, prompt="task")[1:]
+
+
+def test_axes_prompt_golden(example_world, golden):
+    """`prompt="axes"` (not in the paper): the task turn with the grid's columns and rows listed after its
+    bounds, each in an order drawn from the world alone; the answers do not change."""
+    [turn] = prompt_turns(example_world, "axes")
+    axes = " Columns: 3, 2, 0, 1. Rows: 0, 1, 2."
+    assert turn == {"from": "human", "value": (
+        f"Grid is from (0, 0) to (3, 2).{axes} Goal: (3, 2)\nCurrent: (0, 0)\nThe pit is at (3, 0). The wall is "
+        "at (1, 1), and (2, 2).\nCurrent:\n(0, 0)\nPossible:\n(0, 1)\nup\n(1, 0)\nright")}
+    assert turn["value"].replace(axes, "") == golden["turn_3"]
+    for mode in MODES:
+        assert conversation(example_world, "bwd", "marking-deadend", mode, prompt="axes")[1:] == \
+            conversation(example_world, "bwd", "marking-deadend", mode, prompt="task")[1:]
+
+
+def test_grid_axes_are_every_column_and_row_once_in_an_order_of_the_world_alone(example_world):
+    def moved(dx: int, dy: int) -> World:
+        shift = lambda c: (c[0] + dx, c[1] + dy)  # noqa: E731
+        w = example_world
+        return World(4, 3, dx, dy, tuple(map(shift, w.walls)), tuple(map(shift, w.pits)), shift(w.start), shift(w.goal))
+
+    columns, rows = grid_axes(moved(2, 1))
+    assert sorted(columns) == [2, 3, 4, 5] and sorted(rows) == [1, 2, 3]
+    swapped = dataclasses.replace(moved(2, 1), start=(5, 3), goal=(2, 1))
+    assert grid_axes(swapped) == (columns, rows)   # drawn from the bounds alone
+    relative = {tuple(c - dx for c in grid_axes(moved(dx, 0))[0]) for dx in range(3)}
+    assert len(relative) > 1   # not one order, shifted
 
 
 def test_distractors_golden(example_world, golden):

@@ -128,7 +128,7 @@ def test_marking_without_all_moves_is_refused_naming_the_values():
     ("train.max_steps=0", "train.max_steps"),
     ("model=hf", "model.path"),
     ("model.attn_implementation=flash", "model.attn_implementation='flash'.*sdpa, eager"),
-    ("model.prompt=short", "model.prompt='short' is not allowed; expected one of paper, task, cells"),
+    ("model.prompt=short", "model.prompt='short' is not allowed; expected one of paper, task, cells, axes"),
     ("model.log_model=copy", "model.log_model='copy' is not allowed; expected one of transformers, reference"),
     ("model.numbers=roman", "model.numbers='roman' is not allowed; expected one of whole, digits"),
     ("model=hf model.path=x model.numbers=digits", "model.numbers='digits' is not allowed; expected whole for a pretrained"),
@@ -205,7 +205,8 @@ def test_the_extrapolation_study_runs_each_lever_alone_with_two_seeds_on_the_def
                        "whole": ["model.numbers"],
                        "log_length": ["model.attention_scale", "model.attn_implementation"],
                        "linear_cells": ["model.coordinate_init"], "weight_decay": ["train.weight_decay"],
-                       "wide_mlp": ["model.intermediate_size"], "edge_labels": ["data.mask_edge_labels"]}
+                       "wide_mlp": ["model.intermediate_size"], "edge_labels": ["data.mask_edge_labels"],
+                       "axes": ["model.prompt"]}
 
 
 def test_cpu_study_is_the_optimal_half_of_table_1_with_two_seeds_where_asked():
