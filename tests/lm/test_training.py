@@ -10,7 +10,9 @@ from transformers import DataCollatorWithFlattening, Trainer, TrainerCallback
 
 from pipeline.lm.chat import IGNORE_INDEX, WORD_LEVEL_FORMAT
 from pipeline.workflow.config import PYTHON_H, cxx_compiler
-from pipeline.lm.training.batches import LengthGroupedBatches, RightPadCollator, tokenize_conversations
+from pipeline.lm.training.batches import (
+    LengthGroupedBatches, RightPadCollator, stretched_positions, tokenize_conversations,
+)
 from pipeline.lm.training.compile import cpu_has_bf16, dynamo_environment as _dynamo_environment
 from pipeline.lm.training.entry import TrainRequest, main
 from pipeline.lm.training.settings import TrainSettings
@@ -172,6 +174,54 @@ def test_right_padded_batch_without_mask_equals_each_sequence_alone(tokenizer, c
     logits = model(input_ids=batch["input_ids"]).logits
     for row, (example, alone) in enumerate(zip(examples, alone_logits(model, examples))):
         torch.testing.assert_close(logits[row, : len(example["input_ids"])], alone, atol=1e-5, rtol=1e-5)
+
+
+def test_stretched_positions_are_an_ordered_subset_of_a_longer_range_and_plain_at_stretch_one():
+    generator = torch.Generator().manual_seed(0)
+    assert stretched_positions(50, 1.0, generator).tolist() == list(range(50))
+    draws = [stretched_positions(50, 3.0, generator) for _ in range(200)]
+    for positions in draws:
+        assert len(positions) == 50 and bool((positions.diff() > 0).all()) and 0 <= positions[0]
+        assert positions[-1] < 150
+    spans = [int(p[-1]) + 1 for p in draws]
+    assert min(spans) < 70 and max(spans) > 130   # the stretch is drawn over [1, 3]
+    again = torch.Generator().manual_seed(0)
+    stretched_positions(50, 1.0, again)
+    assert torch.equal(stretched_positions(50, 3.0, again), draws[0])   # seeded
+
+
+@pytest.mark.parametrize("stretch", [0.5, float("nan")])
+def test_a_stretch_below_one_is_refused_naming_the_value(stretch):
+    with pytest.raises(ValueError, match="position_stretch=.*expected a number >= 1"):
+        RightPadCollator(0, position_stretch=stretch)
+    with pytest.raises(Exception, match="position_stretch"):
+        TrainSettings(position_stretch=stretch)
+
+
+@torch.no_grad()
+def test_stretched_positions_reach_each_sequence_as_if_it_were_alone(tokenizer, conversations):
+    """With stretched positions the collator sends the position ids and the attention mask: each row computes
+    what the sequence computes alone at those positions (no jump is read as a packed sequence's start), and
+    differs from the plain positions' logits."""
+    model = tiny_model(tokenizer).eval()
+    examples = list(tokenize_conversations(tokenizer, WORD_LEVEL_FORMAT, conversations[:4], 512))
+    torch.manual_seed(0)
+    batch = RightPadCollator(tokenizer.pad_token_id, pad_to_multiple_of=8, position_stretch=2.0)(examples)
+    positions, mask = batch["position_ids"], batch["attention_mask"]
+    assert positions.shape == mask.shape == batch["input_ids"].shape
+    assert bool((positions.diff(dim=1) > 0).all())
+    # use_cache=False as in Trainer: the case in which transformers looks for packed sequences in the positions
+    logits = model(input_ids=batch["input_ids"], position_ids=positions, attention_mask=mask, use_cache=False).logits
+    maskless = model(input_ids=batch["input_ids"], position_ids=positions, use_cache=False).logits
+    for row, (example, plain) in enumerate(zip(examples, alone_logits(model, examples))):
+        n = len(example["input_ids"])
+        assert mask[row].sum() == n and positions[row, n - 1] >= n - 1
+        alone = model(input_ids=torch.tensor([example["input_ids"]]), position_ids=positions[row:row + 1, :n]).logits[0]
+        torch.testing.assert_close(logits[row, :n], alone, atol=1e-5, rtol=1e-5)
+        assert not torch.allclose(maskless[row, :n], alone, atol=1e-4)   # without the mask: cut into "sequences"
+        if positions[row, n - 1] > n - 1:
+            assert not torch.allclose(alone, plain, atol=1e-4)
+    assert set(RightPadCollator(tokenizer.pad_token_id)(examples)) == {"input_ids", "labels"}
 
 
 @torch.no_grad()

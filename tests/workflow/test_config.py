@@ -135,6 +135,7 @@ def test_marking_without_all_moves_is_refused_naming_the_values():
     ("eval.rules=strict", "eval.rules='strict' is not allowed; expected one of project, paper"),
     ("train.long_conversations=cut", "train.long_conversations='cut' is not allowed; expected one of drop, truncate"),
     ("train.muon_bf16=true train.optimizer=adamw", "train.muon_bf16=True is not allowed; expected false unless optimizer=muon"),
+    ("train.position_stretch=0.5", "train.position_stretch=0.5 is not allowed; expected a number >= 1"),
     ("eval.curve_valid=true", "eval.curve_valid=True is not allowed; expected false, or true with curve=true and n_valid >= 1"),
 ])
 def test_bad_values_fail_before_any_work(override, message):
@@ -206,7 +207,7 @@ def test_the_extrapolation_study_runs_each_lever_alone_with_two_seeds_on_the_def
                        "log_length": ["model.attention_scale", "model.attn_implementation"],
                        "linear_cells": ["model.coordinate_init"], "weight_decay": ["train.weight_decay"],
                        "wide_mlp": ["model.intermediate_size"], "edge_labels": ["data.mask_edge_labels"],
-                       "axes": ["model.prompt"]}
+                       "axes": ["model.prompt"], "stretch": ["train.position_stretch"]}
 
 
 def test_cpu_study_is_the_optimal_half_of_table_1_with_two_seeds_where_asked():
@@ -307,6 +308,7 @@ def test_settings_added_since_keep_the_step_hashes_of_finished_runs():
     assert hashes("data.mask_edge_labels=true", toy=True)["data-build"] != "128801358476e7a8"
     assert hashes("train.optimizer=muon", toy=True)["finetune"] != "2404019bf8a1b813"
     assert hashes("train.muon_bf16=true", toy=False)["finetune"] != new["finetune"]
+    assert hashes("train.position_stretch=2", toy=False)["finetune"] != new["finetune"]
     # Eager attention (the CPU default since) trains other numbers than sdpa: a new step; sdpa's runs stay reusable.
     assert hashes("model.attn_implementation=sdpa", toy=False)["finetune"] != new["finetune"]
     assert hashes("model.attn_implementation=sdpa", toy=False)["data-build"] == new["data-build"]

@@ -73,19 +73,36 @@ def tokenize_conversations(
     return ConversationDataset(examples, dropped, truncated)
 
 
+def stretched_positions(n: int, stretch: float, generator: torch.Generator | None = None) -> torch.Tensor:
+    """Position ids for a sequence of ``n`` tokens as if it were longer: a random ordered subset of ``n`` of
+    the first ``round(n * s)`` positions, ``s`` drawn uniformly from [1, ``stretch``] (Ruoss et al. 2023's
+    randomized positions, with the range scaled to the sequence). At ``s`` = 1 it is 0 .. n - 1, the positions
+    decoding uses, so inference stays in the training distribution; larger ``s`` trains the distances between
+    tokens that longer (larger-world) conversations put between them."""
+    s = 1 + (stretch - 1) * torch.rand((), generator=generator).item()
+    span = max(n, round(n * s))
+    return torch.randperm(span, generator=generator)[:n].sort().values
+
+
 @dataclass
 class RightPadCollator:
     """Pads to the longest sequence on the right. With ``attention_mask=False`` (packing) no mask is sent:
-    causal attention keeps every real token blind to the padding after it, and SDPA uses ``is_causal``."""
+    causal attention keeps every real token blind to the padding after it, and SDPA uses ``is_causal``.
+    ``position_stretch`` > 1 (training only; `stretched_positions`) sends each sequence's position ids, and
+    with them the attention mask: without one, transformers reads a jump in the positions as the start of
+    another packed sequence. Draws come from torch's global generator, which Trainer seeds."""
 
     pad_token_id: int
     attention_mask: bool = False
     pad_to_multiple_of: int = 1
+    position_stretch: float = 1.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.pad_token_id, int) or self.pad_token_id < 0:
             raise ValueError(f"pad_token_id={self.pad_token_id!r}: expected a token id (an integer >= 0); a "
                              "tokenizer without a pad token gets one from pipeline.lm.models.with_pad_token")
+        if not self.position_stretch >= 1:
+            raise ValueError(f"position_stretch={self.position_stretch!r}: expected a number >= 1 (1: plain positions)")
 
     def __call__(self, features: list[dict]) -> dict[str, torch.Tensor]:
         width = max(len(f["input_ids"]) for f in features)
@@ -99,7 +116,14 @@ class RightPadCollator:
             labels[row, :n] = torch.tensor(f["labels"])
             mask[row, :n] = 1
         batch = {"input_ids": input_ids, "labels": labels}
-        if self.attention_mask:
+        if self.position_stretch > 1:
+            positions = torch.arange(width).repeat(len(features), 1)
+            for row, f in enumerate(features):
+                n = len(f["input_ids"])
+                positions[row, :n] = stretched_positions(n, self.position_stretch)
+                positions[row, n:] = positions[row, n - 1] + 1 + torch.arange(width - n)
+            batch["position_ids"] = positions
+        if self.attention_mask or self.position_stretch > 1:
             batch["attention_mask"] = mask
         return batch
 

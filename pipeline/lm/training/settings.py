@@ -81,6 +81,9 @@ class TrainSettings:
     # Muon's Newton-Schulz iterations in bf16 (as the reference implementation runs them) where training runs in
     # bf16; fp32 otherwise. Only with optimizer=muon. It changes the numbers (README, Speed).
     muon_bf16: bool = field(default=False, metadata={"hash_if_set": True})
+    # Training conversations see randomized, stretched position ids (`batches.stretched_positions`; 1: plain
+    # positions); decoding keeps plain ones. Not in the paper (README, "Extrapolation").
+    position_stretch: float = field(default=1.0, metadata={"hash_if_set": True})
 
     def __post_init__(self) -> None:
         self.report_to = [self.report_to] if isinstance(self.report_to, str) else list(self.report_to)
@@ -113,6 +116,8 @@ class TrainSettings:
                 "adamw when accelerate_config is set (FSDP shards the matrices Muon orthogonalizes)")
         require(self.optimizer == "muon" or not self.muon_bf16, "muon_bf16", self.muon_bf16,
                 "false unless optimizer=muon (it sets Muon's Newton-Schulz precision)")
+        require(self.position_stretch >= 1, "position_stretch", self.position_stretch,
+                "a number >= 1 (1: plain positions)")
         require(self.long_conversations in LONG_CONVERSATIONS, "long_conversations", self.long_conversations,
                 f"one of {', '.join(LONG_CONVERSATIONS)}")
 
