@@ -11,7 +11,7 @@ from transformers import DataCollatorWithFlattening, Trainer, TrainerCallback
 from pipeline.lm.chat import IGNORE_INDEX, WORD_LEVEL_FORMAT
 from pipeline.workflow.config import PYTHON_H, cxx_compiler
 from pipeline.lm.training.batches import (
-    LengthGroupedBatches, RightPadCollator, stretched_positions, tokenize_conversations,
+    LengthGroupedBatches, RightPadCollator, stretched_batch_positions, stretched_positions, tokenize_conversations,
 )
 from pipeline.lm.training.compile import cpu_has_bf16, dynamo_environment as _dynamo_environment
 from pipeline.lm.training.entry import TrainRequest, main
@@ -192,36 +192,51 @@ def test_stretched_positions_are_an_ordered_subset_of_a_longer_range_and_plain_a
 
 @pytest.mark.parametrize("stretch", [0.5, float("nan")])
 def test_a_stretch_below_one_is_refused_naming_the_value(stretch):
-    with pytest.raises(ValueError, match="position_stretch=.*expected a number >= 1"):
-        RightPadCollator(0, position_stretch=stretch)
-    with pytest.raises(Exception, match="position_stretch"):
+    with pytest.raises(Exception, match="position_stretch=.*expected a number >= 1"):
         TrainSettings(position_stretch=stretch)
 
 
 @torch.no_grad()
 def test_stretched_positions_reach_each_sequence_as_if_it_were_alone(tokenizer, conversations):
-    """With stretched positions the collator sends the position ids and the attention mask: each row computes
-    what the sequence computes alone at those positions (no jump is read as a packed sequence's start), and
-    differs from the plain positions' logits."""
+    """Stretched position ids with the collator's attention mask: each row computes what the sequence computes
+    alone at those positions (no jump is read as a packed sequence's start), and differs from the plain
+    positions' logits; without the mask, transformers cuts the rows at the jumps."""
     model = tiny_model(tokenizer).eval()
     examples = list(tokenize_conversations(tokenizer, WORD_LEVEL_FORMAT, conversations[:4], 512))
-    torch.manual_seed(0)
-    batch = RightPadCollator(tokenizer.pad_token_id, pad_to_multiple_of=8, position_stretch=2.0)(examples)
-    positions, mask = batch["position_ids"], batch["attention_mask"]
+    batch = RightPadCollator(tokenizer.pad_token_id, attention_mask=True, pad_to_multiple_of=8)(examples)
+    mask = batch["attention_mask"]
+    positions = stretched_batch_positions(mask, 2.0, seed=3)
+    assert torch.equal(stretched_batch_positions(mask, 2.0, seed=3), positions)   # the seed alone decides
+    assert not torch.equal(stretched_batch_positions(mask, 2.0, seed=4), positions)
     assert positions.shape == mask.shape == batch["input_ids"].shape
     assert bool((positions.diff(dim=1) > 0).all())
     # use_cache=False as in Trainer: the case in which transformers looks for packed sequences in the positions
     logits = model(input_ids=batch["input_ids"], position_ids=positions, attention_mask=mask, use_cache=False).logits
     maskless = model(input_ids=batch["input_ids"], position_ids=positions, use_cache=False).logits
+    jumps = 0
     for row, (example, plain) in enumerate(zip(examples, alone_logits(model, examples))):
         n = len(example["input_ids"])
         assert mask[row].sum() == n and positions[row, n - 1] >= n - 1
         alone = model(input_ids=torch.tensor([example["input_ids"]]), position_ids=positions[row:row + 1, :n]).logits[0]
         torch.testing.assert_close(logits[row, :n], alone, atol=1e-5, rtol=1e-5)
-        assert not torch.allclose(maskless[row, :n], alone, atol=1e-4)   # without the mask: cut into "sequences"
-        if positions[row, n - 1] > n - 1:
+        if positions[row, n - 1] > n - 1:   # a jump: without the mask the row is cut into "sequences"
+            jumps += 1
+            assert not torch.allclose(maskless[row, :n], alone, atol=1e-4)
             assert not torch.allclose(alone, plain, atol=1e-4)
+    assert jumps >= 2
     assert set(RightPadCollator(tokenizer.pad_token_id)(examples)) == {"input_ids", "labels"}
+
+
+def test_stretched_positions_reach_training_and_only_training(tokenizer, conversations, tmp_path):
+    """``position_stretch`` changes what a step computes (the trainer passes the drawn positions), and the
+    held-out accuracy, scored at plain positions, runs as before."""
+    runs = {stretch: finetune(tiny_model(tokenizer), tokenizer, WORD_LEVEL_FORMAT, conversations[:16],
+                              TrainSettings(max_steps=3, eval_fraction=0.25, position_stretch=stretch, **QUIET),
+                              tmp_path / str(stretch))
+            for stretch in (1.0, 3.0)}
+    plain, stretched = (load_model(runs[s].model_dir) for s in (1.0, 3.0))
+    assert any(not torch.equal(a, b) for a, b in zip(plain.state_dict().values(), stretched.state_dict().values()))
+    assert runs[3.0].token_accuracy is not None and runs[3.0].tokens_trained == runs[1.0].tokens_trained
 
 
 @torch.no_grad()
@@ -394,10 +409,11 @@ class StopAt(TrainerCallback):
             control.should_training_stop = True
 
 
-@pytest.mark.parametrize("optimizer", ["adamw", "muon"])
-def test_resume_after_interruption_matches_an_uninterrupted_run(tokenizer, conversations, tmp_path, optimizer):
-    """Bit for bit: Trainer restores optimizer, schedule and RNG states, and the sampler draws from torch's RNG."""
-    settings = TrainSettings(max_steps=8, optimizer=optimizer, **{**QUIET, "save_steps": 3})
+@pytest.mark.parametrize("optimizer, stretch", [("adamw", 1.0), ("muon", 1.0), ("muon", 2.0)])
+def test_resume_after_interruption_matches_an_uninterrupted_run(tokenizer, conversations, tmp_path, optimizer, stretch):
+    """Bit for bit: Trainer restores optimizer, schedule and RNG states, and the sampler (and the stretched
+    positions' draws) come from torch's RNG."""
+    settings = TrainSettings(max_steps=8, optimizer=optimizer, position_stretch=stretch, **{**QUIET, "save_steps": 3})
     whole = finetune(tiny_model(tokenizer), tokenizer, WORD_LEVEL_FORMAT, conversations, settings, tmp_path / "a")
     cut = finetune(tiny_model(tokenizer), tokenizer, WORD_LEVEL_FORMAT, conversations, settings, tmp_path / "b",
                    callbacks=[StopAt(4)])

@@ -84,25 +84,37 @@ def stretched_positions(n: int, stretch: float, generator: torch.Generator | Non
     return torch.randperm(span, generator=generator)[:n].sort().values
 
 
+def stretched_batch_positions(attention_mask: torch.Tensor, stretch: float, seed: int) -> torch.Tensor:
+    """`stretched_positions` for each row of a right-padded batch (its real tokens: ``attention_mask``), the
+    padding numbered on after the last real token; drawn from a generator seeded with ``seed`` alone, so the
+    same batch and seed give the same positions whatever ran before (a resumed run draws what the uninterrupted
+    one drew; accelerate's data loader collates a batch ahead of the step, so torch's global generator cannot)."""
+    generator = torch.Generator().manual_seed(seed)
+    lengths = attention_mask.sum(dim=1).tolist()
+    width = attention_mask.shape[1]
+    positions = torch.arange(width).repeat(len(lengths), 1)
+    for row, n in enumerate(lengths):
+        if n:
+            positions[row, :n] = stretched_positions(n, stretch, generator)
+            positions[row, n:] = positions[row, n - 1] + 1 + torch.arange(width - n)
+    return positions.to(attention_mask.device)
+
+
 @dataclass
 class RightPadCollator:
     """Pads to the longest sequence on the right. With ``attention_mask=False`` (packing) no mask is sent:
     causal attention keeps every real token blind to the padding after it, and SDPA uses ``is_causal``.
-    ``position_stretch`` > 1 (training only; `stretched_positions`) sends each sequence's position ids, and
-    with them the attention mask: without one, transformers reads a jump in the positions as the start of
-    another packed sequence. Draws come from torch's global generator, which Trainer seeds."""
+    Stretched positions (`stretched_batch_positions`, added by the trainer per step) need the mask: without
+    one, transformers reads a jump in the position ids as the start of another packed sequence."""
 
     pad_token_id: int
     attention_mask: bool = False
     pad_to_multiple_of: int = 1
-    position_stretch: float = 1.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.pad_token_id, int) or self.pad_token_id < 0:
             raise ValueError(f"pad_token_id={self.pad_token_id!r}: expected a token id (an integer >= 0); a "
                              "tokenizer without a pad token gets one from pipeline.lm.models.with_pad_token")
-        if not self.position_stretch >= 1:
-            raise ValueError(f"position_stretch={self.position_stretch!r}: expected a number >= 1 (1: plain positions)")
 
     def __call__(self, features: list[dict]) -> dict[str, torch.Tensor]:
         width = max(len(f["input_ids"]) for f in features)
@@ -116,14 +128,7 @@ class RightPadCollator:
             labels[row, :n] = torch.tensor(f["labels"])
             mask[row, :n] = 1
         batch = {"input_ids": input_ids, "labels": labels}
-        if self.position_stretch > 1:
-            positions = torch.arange(width).repeat(len(features), 1)
-            for row, f in enumerate(features):
-                n = len(f["input_ids"])
-                positions[row, :n] = stretched_positions(n, self.position_stretch)
-                positions[row, n:] = positions[row, n - 1] + 1 + torch.arange(width - n)
-            batch["position_ids"] = positions
-        if self.attention_mask or self.position_stretch > 1:
+        if self.attention_mask:
             batch["attention_mask"] = mask
         return batch
 

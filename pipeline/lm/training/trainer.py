@@ -24,7 +24,8 @@ from transformers.trainer_utils import PREFIX_CHECKPOINT_DIR, get_last_checkpoin
 from pipeline.lm.chat import IGNORE_INDEX, ChatFormat
 from pipeline.lm.models import save_chat_format
 from pipeline.lm.training.batches import (
-    ConversationDataset, LengthGroupedBatches, RightPadCollator, split_eval, tokenize_conversations,
+    ConversationDataset, LengthGroupedBatches, RightPadCollator, split_eval, stretched_batch_positions,
+    tokenize_conversations,
 )
 from pipeline.lm.training.compile import compiled_blocks, dynamo_environment, use_bf16
 from pipeline.lm.training.optim import build_optimizer
@@ -63,7 +64,23 @@ class BarProgress(ProgressCallback):
 class _Trainer(Trainer):
     """Trainer, quiet about the one "missing key" that is not missing: a checkpoint of a model whose output
     head is tied to its input embedding holds the weight once, and resuming it warned ``There were missing
-    keys in the checkpoint model loaded: ['lm_head.weight']`` (harmless: the head is re-tied)."""
+    keys in the checkpoint model loaded: ['lm_head.weight']`` (harmless: the head is re-tied).
+
+    With ``position_stretch`` > 1 each training batch gets stretched position ids (`stretched_batch_positions`)
+    drawn from (seed, step, micro-batch within the step): a resumed run draws what the uninterrupted one drew."""
+
+    position_stretch: float = 1.0
+    _draw: tuple[int, int] = (-1, 0)   # (global step, micro-batches drawn in it)
+
+    def compute_loss(self, model, inputs, *args, **kwargs):
+        if self.position_stretch > 1 and model.training:
+            step, drawn = self._draw
+            drawn = drawn + 1 if step == self.state.global_step else 0
+            self._draw = (self.state.global_step, drawn)
+            key = (self.args.seed * 1_000_003 + self.state.global_step) * 1_009 + drawn
+            inputs = {**inputs, "position_ids": stretched_batch_positions(inputs["attention_mask"],
+                                                                          self.position_stretch, key)}
+        return super().compute_loss(model, inputs, *args, **kwargs)
 
     def _issue_warnings_after_load(self, load_result) -> None:
         tied = getattr(self.model.config, "tie_word_embeddings", False)
@@ -210,15 +227,16 @@ def _finetune(model, tokenizer, fmt, conversations, settings, output_dir, seed, 
             model=model,
             args=args,
             train_dataset=train_data,
-            data_collator=RightPadCollator(tokenizer.pad_token_id, attention_mask=not settings.packing,
-                                           pad_to_multiple_of=settings.pad_to_multiple_of,
-                                           position_stretch=settings.position_stretch),
+            data_collator=RightPadCollator(tokenizer.pad_token_id,
+                                           attention_mask=not settings.packing or settings.position_stretch > 1,
+                                           pad_to_multiple_of=settings.pad_to_multiple_of),
             processing_class=tokenizer,
             callbacks=list(callbacks),
             optimizers=(build_optimizer(settings.optimizer, model, settings.learning_rate, settings.weight_decay,
                                         ns_dtype=torch.bfloat16 if settings.muon_bf16 and args.bf16 else torch.float32),
                         None),
         )
+    trainer.position_stretch = settings.position_stretch
     if any(isinstance(c, ProgressCallback) for c in trainer.callback_handler.callbacks):
         trainer.remove_callback(ProgressCallback)
         trainer.add_callback(BarProgress)
