@@ -55,14 +55,15 @@ def _world_stats(stats: Mapping) -> WorldStats:
 
 
 def optimal_episode(index: int, world: World, stats: Mapping, text: str, error: str | None, direction: str,
-                    variant: str, steps: str = "numbered") -> ScoredEpisode:
+                    variant: str, steps: str = "numbered", plan: str = "moves") -> ScoredEpisode:
     """Score one single-turn answer (graded); ``stats``: the world's `WorldStats` fields; ``error``: the answer
-    could not be generated. ``steps``: how the golden map writes its step headers (`texts.STEP_HEADERS`)."""
+    could not be generated. ``steps`` and ``plan``: how the golden answer writes its step headers
+    (`texts.STEP_HEADERS`) and its Plan (`texts.PLAN_FORMS`)."""
     if error is not None:
         return ScoredEpisode(index, _world_stats(stats), success=False, outcome="error", n_moves=0, parsed=False,
                              valid=False, reaches_goal=False, answers=[text], error=error)
-    score = score_optimal(world, text, direction, variant, steps)
-    wrong = first_wrong_line(world, direction, variant, text, steps)
+    score = score_optimal(world, text, direction, variant, steps, plan)
+    wrong = first_wrong_line(world, direction, variant, text, steps, plan)
     return ScoredEpisode(
         index, _world_stats(stats), success=bool(score.optimal), outcome="success" if score.optimal else "fail",
         n_moves=len(score.moves), moves=list(score.moves), parsed=score.parsed, valid=score.valid,

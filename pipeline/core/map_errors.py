@@ -102,11 +102,11 @@ def _walk(golden: list[str]):
         yield section, kind, bfs_step, in_step, named_states
 
 
-def first_wrong_line(world: World, direction: str, variant: str, text: object, steps: str = "numbered"
-                     ) -> ErrorSite | None:
+def first_wrong_line(world: World, direction: str, variant: str, text: object, steps: str = "numbered",
+                     plan: str = "moves") -> ErrorSite | None:
     """The first line of ``text`` that departs from the golden optimal-setting answer, classified; None if
     the answer is the golden one. ``direction`` and ``variant`` are checked like `texts.answer`'s."""
-    golden = golden_answer(world, direction, variant, "optimal", steps=steps).split("\n")
+    golden = golden_answer(world, direction, variant, "optimal", steps=steps, plan=plan).split("\n")
     produced = _as_text(text).split("\n")
     index = first_difference(produced, golden)
     if index is None:
@@ -132,15 +132,17 @@ def first_wrong_line(world: World, direction: str, variant: str, text: object, s
                      expected, got, label_error)
 
 
-def label_kinds(world: World, direction: str, variant: str, steps: str = "numbered") -> list[tuple[int, str]]:
+def label_kinds(world: World, direction: str, variant: str, steps: str = "numbered", plan: str = "moves"
+                ) -> list[tuple[int, str]]:
     """Every label line of the golden optimal-setting thought as (0-based line index, what its neighbour is:
     one of NEIGHBOURS): what a teacher-forced probe grades the model's labels by."""
-    return [(index, kind) for index, kind, _ in label_cells(world, direction, variant, steps)]
+    return [(index, kind) for index, kind, _ in label_cells(world, direction, variant, steps, plan)]
 
 
-def label_cells(world: World, direction: str, variant: str, steps: str = "numbered") -> list[tuple[int, str, Cell]]:
+def label_cells(world: World, direction: str, variant: str, steps: str = "numbered", plan: str = "moves"
+                ) -> list[tuple[int, str, Cell]]:
     """`label_kinds` with the neighbour each label is about: (line index, what it is, its cell)."""
-    golden = golden_answer(world, direction, variant, "optimal", steps=steps).split("\n")
+    golden = golden_answer(world, direction, variant, "optimal", steps=steps, plan=plan).split("\n")
     levels = _levels(world, world.start if direction == "fwd" else world.goal)
     labels = [(index, parse_cell(golden[index - 1]), bfs_step)
               for index, (_, kind, bfs_step, _, _) in enumerate(_walk(golden)) if kind == "label"]
@@ -154,19 +156,20 @@ def corner_offset(world: World, cell: Cell) -> int:
 
 
 # What `line_kinds` calls a golden line: LINE_KINDS' thought and section kinds, with a Backtrack line split into
-# the cell it is at and the move it takes from there.
+# the cell it is at and the move it takes from there, and an anchored Plan's cells apart from its moves.
 PROBE_KINDS = ("section header", "step header", "state name", "coordinate", "label", "backtrack cell",
-               "backtrack move", "plan")
+               "backtrack move", "plan cell", "plan")
 
 
-def line_kinds(world: World, direction: str, variant: str, steps: str = "numbered") -> list[tuple[str, int | None]]:
+def line_kinds(world: World, direction: str, variant: str, steps: str = "numbered", plan: str = "moves"
+               ) -> list[tuple[str, int | None]]:
     """Every line of the golden optimal-setting answer as (one of PROBE_KINDS, the move's 0-based index in its
     section for a backtrack move or plan line, else None): what a teacher-forced probe grades lines by."""
-    golden = golden_answer(world, direction, variant, "optimal", steps=steps).split("\n")
+    golden = golden_answer(world, direction, variant, "optimal", steps=steps, plan=plan).split("\n")
     kinds, moves = [], {"backtrack": 0, "plan": 0}
     for line, (_, kind, *_) in zip(golden, _walk(golden)):
-        if kind == "backtrack" and parse_cell(line) is not None:
-            kinds.append(("backtrack cell", None))
+        if kind in moves and parse_cell(line) is not None:
+            kinds.append((f"{kind} cell", None))
         elif kind in moves:
             kinds.append(("backtrack move" if kind == "backtrack" else "plan", moves[kind]))
             moves[kind] += 1

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from pipeline.core.texts import golden_answer, thought_lines
+from pipeline.core.texts import PLAN_FORMS, golden_answer, parse_cell, thought_lines
 from pipeline.core.variants import MAP_VARIANTS
 from pipeline.core.world import MOVES, World, step
 
@@ -88,11 +88,15 @@ class PlanScore:
     moves: tuple[str, ...] = ()      # the parsed plan (empty when it does not parse)
 
 
-def plan_moves(parsed: ParsedAnswer) -> list[str] | None:
-    """The Plan section as moves (blank lines ignored), or None if absent or not all moves."""
+def plan_moves(parsed: ParsedAnswer, plan: str = "moves") -> list[str] | None:
+    """The Plan section as moves (blank lines ignored), or None if absent or not all moves. ``plan="anchored"``
+    (`texts.PLAN_FORMS`): cell lines are read past, so only the moves are graded (a wrong anchor is a map
+    error, not a plan error)."""
     if parsed.plan is None:
         return None
     moves = [line.strip() for line in parsed.plan if line.strip()]
+    if plan == "anchored":
+        moves = [line for line in moves if parse_cell(line) is None]
     return moves if moves and all(m in MOVES for m in moves) else None
 
 
@@ -114,14 +118,15 @@ def first_difference(produced: list[str], golden: list[str]) -> int | None:
     return None if len(produced) == len(golden) else min(len(produced), len(golden))
 
 
-def score_optimal(world: World, text: object, direction: str, variant: str, steps: str = "numbered") -> PlanScore:
+def score_optimal(world: World, text: object, direction: str, variant: str, steps: str = "numbered",
+                  plan: str = "moves") -> PlanScore:
     """Grade an optimal-setting answer against the world's unique shortest path and golden answer.
 
-    `direction` and `variant` are checked (ValueError names the allowed ones); the text never raises.
+    `direction`, `variant` and `plan` are checked (ValueError names the allowed ones); the text never raises.
     """
-    golden = golden_answer(world, direction, variant, "optimal", steps=steps)
+    golden = golden_answer(world, direction, variant, "optimal", steps=steps, plan=plan)
     parsed = parse_answer(text)
-    moves = plan_moves(parsed)
+    moves = plan_moves(parsed, plan)
     valid, reaches = _walk(world, moves) if moves is not None else (False, False)
     optimal_moves = world.optimal_moves()
     map_exact = None

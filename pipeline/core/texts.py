@@ -30,6 +30,13 @@ DEFAULT_PROMPT = "task"
 # map, so a larger test world would need words it never saw; plain headers hold no such word.
 STEP_HEADERS: tuple[str, ...] = ("numbered", "plain")
 
+# How an optimal answer's Plan is written: the paper's moves alone, one a line, or "anchored" (not in the paper):
+# the cell the walk is at before each move and the goal after the last, as a bwd Backtrack writes them
+# (start, move, cell, move, ..., goal). A run of equal moves copied from the Backtrack is then a lookup of the
+# cell just written, not a count of identical lines, and a larger world's runs are longer than any training
+# world's. Only answers with a Thought have it: NONE and DFS keep the paper's Plan.
+PLAN_FORMS: tuple[str, ...] = ("moves", "anchored")
+
 
 def step_header(level: int, steps: str = "numbered") -> str:
     """The header line of BFS step ``level`` (1-based): `Step k:` (numbered) or `Step:` (plain)."""
@@ -332,28 +339,48 @@ def _moves(world: World, variant: str, seed: int) -> list[str]:
     return dfs_moves(world, seed) if variant == "dfs" else world.optimal_moves()
 
 
-def golden_answer(world: World, direction: str, variant: str, mode: str, seed: int = 0, steps: str = "numbered") -> str:
-    """The first gpt answer: the Thought section, then `Plan:` and all moves, or `Action:` and the first."""
+def golden_answer(world: World, direction: str, variant: str, mode: str, seed: int = 0, steps: str = "numbered",
+                  plan: str = "moves") -> str:
+    """The first gpt answer: the Thought section, then `Plan:` and all moves (``plan``: `PLAN_FORMS`), or
+    `Action:` and the first."""
     check(direction, variant, mode)
-    return _answer(world, direction, variant, mode, _moves(world, variant, seed), steps)
+    return _answer(world, direction, variant, mode, _moves(world, variant, seed), steps, plan)
 
 
-def _answer(world: World, direction: str, variant: str, mode: str, moves: list[str], steps: str) -> str:
-    tail = ["Plan:", *moves] if mode == "optimal" else ["Action:", moves[0]]
-    return "\n".join(thought_lines(world, direction, variant, steps) + tail)
+def plan_lines(world: World, moves: list[str], plan: str = "moves") -> list[str]:
+    """The Plan section's lines for ``moves`` from the start: the moves, or (``plan="anchored"``) the cell before
+    each move and the cell after the last."""
+    check_choice("plan", plan, PLAN_FORMS)
+    if plan == "moves":
+        return list(moves)
+    cell, lines = world.start, [cell_text(world.start)]
+    for move in moves:
+        cell = step(cell, move)
+        lines += (move, cell_text(cell))
+    return lines
+
+
+def _answer(world: World, direction: str, variant: str, mode: str, moves: list[str], steps: str,
+            plan: str = "moves") -> str:
+    check_choice("plan", plan, PLAN_FORMS)
+    thought = thought_lines(world, direction, variant, steps)
+    tail = ["Plan:", *plan_lines(world, moves, plan if thought else "moves")] if mode == "optimal" else \
+        ["Action:", moves[0]]
+    return "\n".join(thought + tail)
 
 
 def conversation(
     world: World, direction: str, variant: str, mode: str, seed: int = 0, prompt: str = DEFAULT_PROMPT,
-    steps: str = "numbered", obstacles: Obstacles | None = None,
+    steps: str = "numbered", obstacles: Obstacles | None = None, plan: str = "moves",
 ) -> list[dict[str, str]]:
     """The whole training conversation (docs/spec.md §2): prompt, first answer and, when reachable, the walk.
-    ``prompt`` and ``steps`` choose the prompt form (`PROMPTS`) and the step headers (`STEP_HEADERS`);
+    ``prompt``, ``steps`` and ``plan`` choose the prompt form (`PROMPTS`), the step headers (`STEP_HEADERS`) and
+    the Plan's lines (`PLAN_FORMS`);
     ``obstacles`` the prompt's (pits, walls) lists if not the world's own (`listed_obstacles`)."""
     check(direction, variant, mode)
     moves = _moves(world, variant, seed)
     turns = prompt_turns(world, prompt, obstacles)
-    turns.append({"from": "gpt", "value": _answer(world, direction, variant, mode, moves, steps)})
+    turns.append({"from": "gpt", "value": _answer(world, direction, variant, mode, moves, steps, plan)})
     if mode == "reachable":
         cell = step(world.start, moves[0])
         for move in moves[1:]:

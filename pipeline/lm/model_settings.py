@@ -11,7 +11,7 @@ from enum import Enum
 from typing import Optional
 
 from pipeline.core.checks import SettingError, require
-from pipeline.core.texts import DEFAULT_PROMPT, PROMPTS, STEP_HEADERS
+from pipeline.core.texts import DEFAULT_PROMPT, PLAN_FORMS, PROMPTS, STEP_HEADERS
 from pipeline.lm.chat import ChatFormat
 
 DTYPES = ("float32", "bfloat16", "float16")
@@ -67,6 +67,9 @@ class ModelSettings:
     # How the answers' step headers are written (pipeline.core.texts.STEP_HEADERS): the paper's `Step k:`, or
     # `Step:` (plain: no number word that larger test worlds would need and training never shows).
     step_headers: str = field(default="numbered", metadata={"hash_if_set": True})
+    # How an optimal answer's Plan is written (pipeline.core.texts.PLAN_FORMS): the paper's moves, or `anchored`
+    # (each move after the cell it leaves, the goal last): a run of equal moves is then copied by its cells.
+    plan_form: str = field(default="moves", metadata={"hash_if_set": True})
     # NUMBERS (scratch models): `digits` makes a step number larger than training shows of trained pieces.
     numbers: str = field(default="whole", metadata={"hash_if_set": True})
     positions: str = field(default="rope", metadata={"hash_if_set": True})   # POSITIONS; scratch models only
@@ -89,6 +92,7 @@ class ModelSettings:
                 self.attn_implementation, f"one of {', '.join(ATTENTION_IMPLEMENTATIONS)}")
         require(self.prompt in PROMPTS, "prompt", self.prompt, f"one of {', '.join(PROMPTS)}")
         require(self.step_headers in STEP_HEADERS, "step_headers", self.step_headers, f"one of {', '.join(STEP_HEADERS)}")
+        require(self.plan_form in PLAN_FORMS, "plan_form", self.plan_form, f"one of {', '.join(PLAN_FORMS)}")
         require(self.numbers in NUMBERS, "numbers", self.numbers, f"one of {', '.join(NUMBERS)}")
         require(self.positions in POSITIONS, "positions", self.positions, f"one of {', '.join(POSITIONS)}")
         require(self.attention_scale in ATTENTION_SCALES, "attention_scale", self.attention_scale,

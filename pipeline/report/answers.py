@@ -62,7 +62,8 @@ def reachable_turns(world: World, moves: Sequence[str], answers: Sequence[str]) 
     return lines
 
 
-def show_episode(record: dict, world: World, direction: str, variant: str, mode: str, steps: str = "numbered") -> str:
+def show_episode(record: dict, world: World, direction: str, variant: str, mode: str, steps: str = "numbered",
+                 plan: str = "moves") -> str:
     """One episode as text: header, prompt, and the model's answer(s) against the golden one."""
     kind = "interpolated" if record.get("interpolated") else "extrapolated"
     lines = [f"world {record['world_index']} ({world.size_x} x {world.size_y}, {kind}, optimal length "
@@ -71,7 +72,7 @@ def show_episode(record: dict, world: World, direction: str, variant: str, mode:
              "--- task prompt", first_human_text(world)]
     answers = record.get("answers") or []
     if mode == "optimal":
-        golden = golden_answer(world, direction, variant, "optimal", steps=steps)
+        golden = golden_answer(world, direction, variant, "optimal", steps=steps, plan=plan)
         lines += side_by_side(answers[0] if answers else "", golden)
         wrong = record.get("first_wrong_line")
         if wrong:
@@ -126,6 +127,7 @@ def inspect_run(tracking_uri: str, run_id: str, world: int | None = None, failed
         records = [json.loads(line) for line in Path(path).read_text().splitlines() if line.strip()]
     direction = (summary.get("text_spec") or {}).get("direction") or direction
     steps = (summary.get("text_spec") or {}).get("step_headers") or "numbered"
+    plan = (summary.get("text_spec") or {}).get("plan_form") or "moves"
     if world is not None:
         chosen = [r for r in records if r["world_index"] == world]
         if not chosen:
@@ -137,7 +139,7 @@ def inspect_run(tracking_uri: str, run_id: str, world: int | None = None, failed
             f"{sum(r['success'] for r in records)}/{len(records)} succeeded")
     if not chosen:
         return head + "\nno episode to show" + (" (none failed)" if failed else "")
-    return "\n\n".join([head, *(show_episode(r, worlds[r["world_index"]], direction, variant, mode, steps)
+    return "\n\n".join([head, *(show_episode(r, worlds[r["world_index"]], direction, variant, mode, steps, plan)
                                 for r in chosen)]) + "\n"
 
 
@@ -185,17 +187,18 @@ def probe_labels(tracking_uri: str, run_id: str, limit: int | None = None, split
         model, tokenizer = load_model(model_dir).eval(), load_tokenizer(model_dir)
         fmt = load_chat_format(model_dir)
     direction, steps = spec.get("direction") or tags.get("direction", "fwd"), spec.get("step_headers") or "numbered"
+    plan = spec.get("plan_form") or "moves"
     labels: dict[tuple[bool, str], list[int]] = {}
     lines: dict[tuple[bool, str], list[int]] = {}
     moves: dict[tuple[str, int], list[int]] = {}
     offsets: dict[int, list[int]] = {}  # new free cells beyond the training sizes, by `corner_offset`
     for record in records[:limit]:
         world, inside = worlds[record["world_index"]], record["interpolated"]
-        kinds = line_kinds(world, direction, variant, steps)
-        answer = golden_answer(world, direction, variant, "optimal", steps=steps)
+        kinds = line_kinds(world, direction, variant, steps, plan)
+        answer = golden_answer(world, direction, variant, "optimal", steps=steps, plan=plan)
         graded = labels_predicted(model, tokenizer, fmt, prompt_turns(world, spec.get("prompt", "paper")), answer,
                                   range(len(kinds)))
-        for line, kind, cell in label_cells(world, direction, variant, steps):
+        for line, kind, cell in label_cells(world, direction, variant, steps, plan):
             _tally(labels, (inside, kind), graded[line])
             if kind == "free" and not inside:
                 _tally(offsets, corner_offset(world, cell), graded[line])

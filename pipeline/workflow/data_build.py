@@ -111,15 +111,20 @@ class TextSettings:
     # How the word-level tokenizer cuts numbers (ModelSettings.numbers): not the texts, but the pieces the
     # summary counts (tokens, untrained words); in the data-build hash only when set.
     numbers: str = field(default="whole", metadata={"hash_if_set": True})
+    # texts.PLAN_FORMS: the paper's Plan of moves, or anchored (each move after the cell it leaves); in the
+    # data-build hash only when set.
+    plan_form: str = field(default="moves", metadata={"hash_if_set": True})
 
     @classmethod
     def of(cls, direction: str, variant: str, mode: str, seed: int = 0, prompt: str = DEFAULT_PROMPT,
-           step_headers: str = "numbered", numbers: str = "whole") -> "TextSettings":
-        # Direction-free variants (NONE, DFS): both directions share one dataset (and model). Step headers
-        # matter only where a Thought has them (maps and CoT).
+           step_headers: str = "numbered", numbers: str = "whole", plan_form: str = "moves") -> "TextSettings":
+        # Direction-free variants (NONE, DFS): both directions share one dataset (and model). Step headers and
+        # the Plan's anchors exist only where a Thought does (maps and CoT); the reachable mode has no Plan.
         if BY_NAME[variant].direction_free:
-            step_headers = "numbered"
-        return cls(text_direction(direction, variant), variant, mode, seed, prompt, step_headers, numbers)
+            step_headers, plan_form = "numbered", "moves"
+        if mode != "optimal":
+            plan_form = "moves"
+        return cls(text_direction(direction, variant), variant, mode, seed, prompt, step_headers, numbers, plan_form)
 
 
 def world_file(data: DataSettings, split: str) -> ResolvedFile | None:
@@ -224,7 +229,7 @@ def _conversations(worlds: list[World], spec: TextSettings, desc: str, distracto
         # Each world's DFS walk gets its own seed, so the walks do not depend on the split's order.
         turns = conversation(world, direction, spec.variant, spec.mode, seed=spec.seed * 1_000_003 + index,
                              prompt=spec.prompt, steps=spec.step_headers,
-                             obstacles=listed_obstacles(world, distractors, frame))
+                             obstacles=listed_obstacles(world, distractors, frame), plan=spec.plan_form)
         if mask_edge is not None:
             answer = next(turn for turn in turns if turn["from"] == "gpt")
             answer[UNTRAINED] = [list(span) for span in edge_label_spans(world, answer["value"], mask_edge)]

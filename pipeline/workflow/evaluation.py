@@ -114,6 +114,7 @@ def evaluate(
     prompt: str = DEFAULT_PROMPT,
     rules: str = "project",
     steps: str = "numbered",
+    plan: str = "moves",
 ) -> list[dict]:
     """Run every world not yet in ``partial_path`` and return all records in world order.
 
@@ -133,7 +134,7 @@ def evaluate(
                 generations = decoder.generate([prompt_turns(worlds[i], prompt) for i in chunk])
                 for i, generation in zip(chunk, generations):
                     partial.add(optimal_episode(i, worlds[i], stats[i], generation.text, generation.error, direction, variant,
-                                              steps).to_dict())
+                                              steps, plan).to_dict())
                     progress.update()
             else:
                 def finished(episode, chunk=chunk) -> None:
@@ -196,7 +197,7 @@ def _evaluate_model(settings: EvalSettings, model: ModelSettings, texts: TextSet
                            trust_remote_code=model.trust_remote_code, attn_implementation=model.attn_implementation)
     return evaluate(decoder, worlds, stats, mode=texts.mode, direction=texts.direction or "fwd", variant=texts.variant,
                     max_moves=settings.max_moves, partial_path=partial_path, prompt=texts.prompt, rules=settings.rules,
-                    steps=texts.step_headers)
+                    steps=texts.step_headers, plan=texts.plan_form)
 
 
 # The curve's rates (`metrics`' names) and the suffix each is logged with after the curve's metric name.

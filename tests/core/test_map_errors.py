@@ -161,6 +161,11 @@ def test_line_kinds_name_every_golden_line_and_number_the_moves():
     assert [move for kind, move in tail if kind == "backtrack move"] == list(range(len(plan)))
     assert [move for kind, move in tail if kind == "plan"] == list(range(len(plan)))
     assert backtrack[1::2] == plan
+    anchored = line_kinds(WORLD, "bwd", "marking-deadend", plan="anchored")
+    plan_kinds = anchored[golden.index("Plan:") + 1:]
+    assert [kind for kind, _ in plan_kinds] == ["plan cell", "plan"] * len(plan) + ["plan cell"]
+    assert [move for kind, move in plan_kinds if kind == "plan"] == list(range(len(plan)))
+    assert anchored[:golden.index("Plan:") + 1] == kinds[:golden.index("Plan:") + 1]
 
 
 def test_label_cells_name_each_labels_neighbour_and_its_offset_from_the_low_corner():

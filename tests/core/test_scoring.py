@@ -16,6 +16,7 @@ from pipeline.core.scoring import (
     parse_answer,
     score_optimal,
 )
+from pipeline.core.texts import golden_answer
 from pipeline.core.variants import DIRECTIONS, MAP_VARIANTS, MODES, VARIANTS
 from pipeline.core.world import World
 
@@ -115,6 +116,28 @@ def test_graded_failures(example_world):
     # A plan line that is not a move: not parsed.
     garbled = score_optimal(example_world, plan_head + "\nright\nnorth", "fwd", "marking-deadend")
     assert not garbled.parsed and garbled.plan_length is None and not garbled.optimal
+
+
+def test_an_anchored_plan_is_graded_by_its_moves(example_world):
+    anchored = golden_answer(example_world, "fwd", "marking-deadend", "optimal", plan="anchored")
+    score = score_optimal(example_world, anchored, "fwd", "marking-deadend", plan="anchored")
+    assert score.optimal and score.map_exact and score.map_first_error is None and score.plan_length == 5
+    lines = anchored.split("\n")
+    # A wrong anchor with the right moves: the plan is optimal, the answer departs from the golden one there.
+    wrong = lines[:-1] + ["(3, 3)"]
+    score = score_optimal(example_world, "\n".join(wrong), "fwd", "marking-deadend", plan="anchored")
+    assert score.optimal and score.map_first_error == len(lines) - 1
+    # Moves alone still parse under anchored; anchors do not parse as the paper's Plan.
+    plain = golden_answer(example_world, "fwd", "marking-deadend", "optimal")
+    assert score_optimal(example_world, plain, "fwd", "marking-deadend", plan="anchored").optimal
+    assert not score_optimal(example_world, anchored, "fwd", "marking-deadend").parsed
+    # With one anchor dropped it still grades by the moves; a garbled line does not parse.
+    assert score_optimal(example_world, "\n".join(lines[:-3] + lines[-2:]), "fwd", "marking-deadend",
+                         plan="anchored").optimal
+    garbled = "\n".join(lines[:-1] + ["(3,2)"])
+    assert not score_optimal(example_world, garbled, "fwd", "marking-deadend", plan="anchored").parsed
+    with pytest.raises(ValueError, match="unknown plan"):
+        score_optimal(example_world, anchored, "fwd", "marking-deadend", plan="cells")
 
 
 def test_map_first_error_points_at_the_first_wrong_line(example_world):

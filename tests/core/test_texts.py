@@ -13,7 +13,9 @@ from pipeline import World, conversation
 from pipeline.core.variants import BASELINES, DIRECTIONS, MAP_VARIANTS, MODES, PAPER_MAP_VARIANTS, PAPER_VARIANTS, VARIANTS
 from pipeline.core.texts import (
     INSTRUCTION,
+    PLAN_FORMS,
     cell_text,
+    plan_lines,
     grid_axes,
     parse_cell,
     PROMPTS,
@@ -364,6 +366,30 @@ def test_plain_step_headers_golden(example_world):
     assert all(is_step_header(h) for h in ("Step:", "Step 1:", "Step 12:")) and not is_step_header("(1, 2)")
     with pytest.raises(ValueError, match="unknown steps 'roman'; allowed: numbered, plain"):
         conversation(example_world, "fwd", "marking-deadend", "optimal", steps="roman")
+
+
+def test_anchored_plan_golden(example_world):
+    """`plan="anchored"` (not in the paper) writes the cell before each move and the goal last; for bwd the Plan is
+    then the Backtrack's own lines, for fwd the same walk from the start; nothing before the Plan moves."""
+    anchored = golden_answer(example_world, "bwd", "no-all", "optimal", plan="anchored")
+    assert anchored.split("Plan:\n")[1] == (
+        "(0, 0)\nright\n(1, 0)\nright\n(2, 0)\nup\n(2, 1)\nright\n(3, 1)\nup\n(3, 2)")
+    assert anchored.split("Plan:\n")[1] == anchored.split("Backtrack:\n")[1].split("\nPlan:")[0]
+    for variant in (*MAP_VARIANTS, "cot"):
+        for direction in DIRECTIONS:
+            moves = golden_answer(example_world, direction, variant, "optimal").split("\n")
+            lines = golden_answer(example_world, direction, variant, "optimal", plan="anchored").split("\n")
+            plan = moves.index("Plan:")
+            assert lines[:plan + 1] == moves[:plan + 1]
+            assert lines[plan + 2::2] == moves[plan + 1:] and lines[plan + 1] == "(0, 0)" and lines[-1] == "(3, 2)"
+    # NONE and DFS write no Thought: their Plan stays the paper's; the reachable setting has no Plan.
+    for variant, mode in (("none", "optimal"), ("none", "reachable"), ("marking-deadend", "reachable")):
+        assert conversation(example_world, "fwd", variant, mode, plan="anchored") == conversation(
+            example_world, "fwd", variant, mode)
+    assert plan_lines(example_world, ["up"], "anchored") == ["(0, 0)", "up", "(0, 1)"]
+    assert PLAN_FORMS == ("moves", "anchored")
+    with pytest.raises(ValueError, match="unknown plan 'cells'; allowed: moves, anchored"):
+        golden_answer(example_world, "fwd", "marking-deadend", "optimal", plan="cells")
 
 
 def test_parse_cell_reads_back_what_cell_text_writes_and_nothing_else():

@@ -207,7 +207,8 @@ def test_the_extrapolation_study_runs_each_lever_alone_with_two_seeds_on_the_def
                        "log_length": ["model.attention_scale", "model.attn_implementation"],
                        "linear_cells": ["model.coordinate_init"], "weight_decay": ["train.weight_decay"],
                        "wide_mlp": ["model.intermediate_size"], "edge_labels": ["data.mask_edge_labels"],
-                       "axes": ["model.prompt"], "plain_positions": ["train.position_stretch"]}
+                       "axes": ["model.prompt"], "plain_positions": ["train.position_stretch"],
+                       "anchored_plan": ["model.plan_form"]}
 
 
 def test_cpu_study_is_the_optimal_half_of_table_1_with_two_seeds_where_asked():
@@ -300,7 +301,7 @@ def test_settings_added_since_keep_the_step_hashes_of_finished_runs():
     for override in ("model.step_headers=plain", "model.positions=nope", "model.rope_theta=100",
                      "model.numbers=digits"):
         assert hashes(override, toy=True)["finetune"] != "2404019bf8a1b813", override
-    for override in ("model.step_headers=plain", "model.numbers=digits"):
+    for override in ("model.step_headers=plain", "model.numbers=digits", "model.plan_form=anchored"):
         assert hashes(override, toy=True)["data-build"] != "128801358476e7a8", override
     assert hashes("train.long_conversations=truncate", toy=True)["finetune"] != "2404019bf8a1b813"
     assert hashes("data.train_deep=0.5", toy=True)["data-build"] != "128801358476e7a8"

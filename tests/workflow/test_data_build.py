@@ -4,6 +4,7 @@ import json
 
 import pytest
 
+from pipeline.core.checks import SettingError
 from pipeline.lm.chat import UNTRAINED, read_conversations
 from pipeline.lm.model_settings import ModelSettings
 from pipeline.workflow.data_build import (
@@ -69,6 +70,17 @@ def test_direction_free_baselines_share_one_text_spec():
     assert TextSettings.of("fwd", "none", "optimal") == TextSettings.of("bwd", "none", "optimal")
     assert TextSettings.of("fwd", "dfs", "reachable") == TextSettings.of("bwd", "dfs", "reachable")
     assert TextSettings.of("fwd", "cot", "optimal") != TextSettings.of("bwd", "cot", "optimal")
+
+
+def test_an_anchored_plan_is_a_text_setting_only_where_the_answer_has_a_plan_and_a_thought():
+    anchored = TextSettings.of("bwd", "marking-deadend", "optimal", plan_form="anchored")
+    assert anchored.plan_form == "anchored" and anchored != TextSettings.of("bwd", "marking-deadend", "optimal")
+    assert TextSettings.of("bwd", "cot", "optimal", plan_form="anchored").plan_form == "anchored"
+    assert TextSettings.of("fwd", "none", "optimal", plan_form="anchored") == TextSettings.of("fwd", "none", "optimal")
+    assert TextSettings.of("bwd", "marking-deadend", "reachable", plan_form="anchored") == TextSettings.of(
+        "bwd", "marking-deadend", "reachable")
+    with pytest.raises(SettingError, match="plan_form='cells'.*one of moves, anchored"):
+        ModelSettings(plan_form="cells")
 
 
 def test_the_papers_test_file_can_be_the_test_split(paper_test_file):
