@@ -21,6 +21,8 @@ conversations through `pipeline.lm.training.trainer.finetune`, with the default 
 - ``default, <kernel> attention``: the default with the other of ``sdpa`` and ``eager`` for
   ``model.attn_implementation`` (the same attention, computed by torch's fused kernel or as two matmuls and a
   softmax that the compiler fuses): what the attention kernel costs at these short sequences.
+- ``default, plain positions``: the default with ``position_stretch`` 1 (when the default stretches its training
+  positions, which also sends the attention mask): what stretched positions cost.
 - ``default, paper prompt``: the same on the same worlds with the paper's instruction turns, when ``--model``
   prompts with the task turn alone (``prompt: task``, the CPU default): tokens/s barely move, conversations/s
   is what the switch buys.
@@ -139,7 +141,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--only", choices=("padded-fp32", "packed-fp32", "packed-bf16", "default", "when-faster",
                                            "default, paper prompt", "other-optimizer", "muon-bf16",
-                                           "other-attention"),
+                                           "other-attention", "plain-positions"),
                         action="append", help="run only these (repeatable)")
     args = parser.parse_args()
     if not 0 <= args.skip < args.steps:
@@ -204,8 +206,15 @@ def main() -> None:
     if other_attention and model_cfg.attention_scale == "constant":
         runs[attention_run] = runs[default]
         attention[attention_run] = other_attention
+    # What stretched positions cost (train.position_stretch; they send the attention mask): the default without.
+    # The default's family stretches as --train sets; the padded and packed baselines keep plain positions.
+    stretch = {name: train_cfg.position_stretch for name in runs if name.startswith("default")}
+    plain_positions = f"{default}, plain positions"
+    if scope != "none" and train_cfg.position_stretch > 1:
+        runs[plain_positions] = runs[default]
+        stretch[plain_positions] = 1.0
     selected = {"default": default, "when-faster": when_faster, "other-optimizer": other_optimizer,
-                "muon-bf16": muon_other, "other-attention": attention_run}
+                "muon-bf16": muon_other, "other-attention": attention_run, "plain-positions": plain_positions}
     wanted = {selected.get(name, name) for name in args.only or runs}
     rates: dict[str, tuple[float, float]] = {}  # name: (overall, steady) real tokens/s
     per_token: dict[str, float] = {}  # name: useful training FLOPs per real token of its conversations
@@ -222,6 +231,7 @@ def main() -> None:
             pad_to_multiple_of=train_cfg.pad_to_multiple_of,
             report_to=(), logging_steps=args.steps, save_steps=10 * args.steps, torch_threads=args.threads,
             torch_compile=compile_scope, optimizer=optimizer, muon_bf16=muon_bf16,
+            position_stretch=stretch.get(name, 1.0),
         )
         clock = StepClock()
         with tempfile.TemporaryDirectory() as out:
