@@ -113,15 +113,19 @@ def preset(settings_class, path):
     return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(settings_class), OmegaConf.load(path)))
 
 
-def cpu_conversations(n: int, seed: int, prompt: str) -> list[list[dict]]:
-    """What the default job trains on (conf/data/cpu.yaml sizes; BWD marking-deadend, optimal setting)."""
+def cpu_conversations(n: int, seed: int, prompt: str, plan: str = "moves") -> list[list[dict]]:
+    """What the default job trains on (conf/data/cpu.yaml sizes; BWD marking-deadend, optimal setting; ``plan``:
+    the model's Plan form)."""
     gen = preset(DataSettings, ROOT / "conf" / "data" / "cpu.yaml").generator_config("train")
-    return [conversation(w, "bwd", "marking-deadend", "optimal", prompt=prompt) for w in generate_worlds(n, seed, gen)]
+    return [conversation(w, "bwd", "marking-deadend", "optimal", prompt=prompt, plan=plan)
+            for w in generate_worlds(n, seed, gen)]
 
 
-def paper_conversations(n: int, seed: int, prompt: str, low: int = 300, high: int = 1500) -> list[list[dict]]:
+def paper_conversations(n: int, seed: int, prompt: str, plan: str = "moves", low: int = 300, high: int = 1500
+                        ) -> list[list[dict]]:
     """``n`` FWD marking-deadend conversations of paper-size worlds whose word-level length is in [low, high]."""
-    texts = [conversation(w, "fwd", "marking-deadend", "optimal", prompt=prompt) for w in generate_worlds(3 * n, seed)]
+    texts = [conversation(w, "fwd", "marking-deadend", "optimal", prompt=prompt, plan=plan)
+             for w in generate_worlds(3 * n, seed)]
     tokenizer = build_word_tokenizer(t["value"] for c in texts for t in c)
     kept = [c for c in texts if low <= len(encode_conversation(tokenizer, WORD_LEVEL_FORMAT, c)[0]) <= high]
     if len(kept) < n:
@@ -151,9 +155,9 @@ def main() -> None:
     model_cfg, train_cfg = preset(ModelSettings, args.model), preset(TrainSettings, args.train)
     make = cpu_conversations if args.data == "cpu" else paper_conversations
     prompt = model_cfg.prompt
-    sets = {prompt: make(args.conversations, args.seed, prompt)}
+    sets = {prompt: make(args.conversations, args.seed, prompt, model_cfg.plan_form)}
     if prompt != "paper":  # the same worlds with the paper's instruction turns: what the prompt switch saves
-        sets["paper"] = make(args.conversations, args.seed, "paper")
+        sets["paper"] = make(args.conversations, args.seed, "paper", model_cfg.plan_form)
     conversations = sets[prompt]
     tokenizer = build_word_tokenizer(t["value"] for c in [*sets.get("paper", []), *conversations] for t in c)
     lengths = [len(encode_conversation(tokenizer, WORD_LEVEL_FORMAT, c)[0]) for c in conversations]
