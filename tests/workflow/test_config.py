@@ -93,6 +93,13 @@ def test_models_trained_from_scratch_drop_the_instruction_and_pretrained_ones_ke
     assert _compose(["model=llama3_8b"]).model.log_model == "reference"
 
 
+def test_the_cpu_default_anchors_its_plan_and_the_paper_presets_keep_the_papers():
+    assert _compose().model.plan_form == "anchored" and _compose().train.position_stretch == 2
+    for preset in (["model=toy"], ["model=llama3_8b"], ["model=hf", "model.path=x"]):
+        assert _compose(preset).model.plan_form == "moves", preset
+    assert _compose(["train=paper"]).train.position_stretch == 1
+
+
 def test_the_cpu_default_computes_attention_as_matmuls_and_the_paper_model_keeps_sdpa():
     assert _compose().model.attn_implementation == "eager" and _compose(["model=toy"]).model.attn_implementation == "sdpa"
     assert _compose(["model=llama3_8b"]).model.attn_implementation == "sdpa"
