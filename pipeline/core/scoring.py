@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from pipeline.core.texts import PLAN_FORMS, golden_answer, parse_cell, thought_lines
+from pipeline.core.texts import golden_answer, parse_cell, thought_lines
 from pipeline.core.variants import MAP_VARIANTS
 from pipeline.core.world import MOVES, World, step
 
