@@ -33,7 +33,7 @@ log = logging.getLogger("pipeline.run")
 # Where the README's `mlflow ui` command serves the store.
 UI_ADDRESS = "http://127.0.0.1:5000"
 # Bumped when a step's code changes what it writes, so old runs are not reused for new semantics.
-STEP_VERSIONS = {"data-build": 2, "finetune": 2, "eval": 3}   # README, "Step versions", says what each bump changed
+STEP_VERSIONS = {"data-build": 2, "finetune": 3, "eval": 3}   # README, "Step versions", says what each bump changed
 # The same for a pretrained model's (kind=hf) finetune alone: its subword tokenizer gives other ids since each
 # human turn is encoded with its prefix as one text (issue 24); a scratch model's word-level ids did not change.
 HF_FINETUNE_VERSION = 2

@@ -281,15 +281,22 @@ def test_paper_scale_presets_compose():
     assert cfg.train.long_conversations == "truncate" and _compose().train.long_conversations == "drop"
 
 
-def test_settings_added_since_keep_the_step_hashes_of_finished_runs():
+def test_settings_added_since_keep_the_step_hashes_of_finished_runs(monkeypatch):
     # Settings added since (train.long_conversations, model.step_headers/positions/rope_theta/numbers, the texts'
     # step_headers, eval.n_valid, data.train_deep) count in a hash only when set, so a store's finished CPU-default and toy steps
     # stay reusable: these are the hashes of the code before them (commit d5259f8). The CPU default's eval
     # scores validation worlds now (eval.n_valid=200), a new output: its eval hash is new. Change these only for
     # a change meant to rerun finished steps (README, "Step versions").
+    from pipeline.workflow import job as job_module
     from pipeline.workflow.job import job_texts, step_hashes
 
-    def hashes(*overrides, toy):
+    # finetune 3 (length-grouped batches no longer cut across two length groups) reran every finetune and eval:
+    # the settings' invariants below are pinned under finetune 2, and version 3 gives new hashes.
+    current = job_module.STEP_VERSIONS["finetune"]
+    assert current == 3
+
+    def hashes(*overrides, toy, version=2):
+        monkeypatch.setitem(job_module.STEP_VERSIONS, "finetune", version)
         cfg = compose_job(None, "tracking.root=x", *overrides, toy=toy)
         job = validate(cfg)
         return step_hashes(job, cfg.seed, job_texts(cfg, job))
@@ -305,6 +312,9 @@ def test_settings_added_since_keep_the_step_hashes_of_finished_runs():
     assert new["data-build"] != "9084abe767f5f3cf" and new["finetune"] != "9f74feb50b9e71d8"
     assert hashes(toy=True) == {"data-build": "128801358476e7a8", "finetune": "2404019bf8a1b813",
                                 "eval": "4141ac65b7504e8f"}
+    now = hashes(toy=True, version=current)
+    assert now["data-build"] == "128801358476e7a8" and now["finetune"] != "2404019bf8a1b813"
+    assert now["eval"] != "4141ac65b7504e8f"
     for override in ("model.step_headers=plain", "model.positions=nope", "model.rope_theta=100",
                      "model.numbers=digits"):
         assert hashes(override, toy=True)["finetune"] != "2404019bf8a1b813", override
