@@ -140,10 +140,10 @@ class LengthGroupedBatches(torch.utils.data.Sampler[int]):
     and cut into batches; then the full batches are shuffled and the one short batch (the last megabatch's
     remainder, if the data set is not a multiple of ``batch_size``) goes last. The data loader cuts this order
     into runs of ``batch_size`` again, so a short batch in the middle would shift every later run across two
-    length groups (it did: 8% of the computed tokens were padding on the default job, against about 2%). transformers' LengthGroupedSampler shrinks megabatches
-    to a quarter of a small data set (8% padding on a few hundred conversations) and runs each megabatch from
-    the longest batch to the shortest, a length curriculum we do not want. Randomness comes from torch's global
-    generator, which Trainer seeds and restores on resume.
+    length groups (it did: 8% of the computed tokens were padding on the default job, against about 2%).
+    transformers' LengthGroupedSampler shrinks megabatches to a quarter of a small data set (8% padding on a few
+    hundred conversations) and runs each megabatch from the longest batch to the shortest, a length curriculum we
+    do not want. Randomness comes from torch's global generator, which Trainer seeds and restores on resume.
     """
 
     def __init__(self, lengths: Sequence[int], batch_size: int, megabatch_mult: int = 50):
@@ -160,7 +160,8 @@ class LengthGroupedBatches(torch.utils.data.Sampler[int]):
             megabatch = sorted(order[start:start + size], key=self.lengths.__getitem__)
             batches += [megabatch[i:i + self.batch_size] for i in range(0, len(megabatch), self.batch_size)]
         short = [batches.pop()] if batches and len(batches[-1]) < self.batch_size else []
-        return iter([i for b in torch.randperm(len(batches)).tolist() for i in batches[b]] + [i for b in short for i in b])
+        shuffled = [i for b in torch.randperm(len(batches)).tolist() for i in batches[b]]
+        return iter(shuffled + [i for b in short for i in b])
 
 
 def split_eval(conversations: Sequence, fraction: float, seed: int) -> tuple[list, list]:
