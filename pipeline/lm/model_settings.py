@@ -34,6 +34,9 @@ COORDINATE_INITS = ("random", "linear")
 # How the word-level tokenizer cuts a number outside a cell (pipeline.lm.tokenizer.NUMBER_PIECES): one piece, or
 # one piece a digit.
 NUMBERS = ("whole", "digits")
+# Where the word-level tokenizer puts a newline (pipeline.lm.tokenizer.NEWLINE_PIECES): its own piece, or joined to
+# the cell, word or punctuation mark that ends the line (the same text in about two thirds of the tokens).
+NEWLINES = ("own", "joined")
 
 
 class ModelKind(str, Enum):
@@ -72,6 +75,7 @@ class ModelSettings:
     plan_form: str = field(default="moves", metadata={"hash_if_set": True})
     # NUMBERS (scratch models): `digits` makes a step number larger than training shows of trained pieces.
     numbers: str = field(default="whole", metadata={"hash_if_set": True})
+    newlines: str = field(default="own", metadata={"hash_if_set": True})   # NEWLINES; scratch models only
     positions: str = field(default="rope", metadata={"hash_if_set": True})   # POSITIONS; scratch models only
     attention_scale: str = field(default="constant", metadata={"hash_if_set": True})  # ATTENTION_SCALES; scratch
     coordinate_init: str = field(default="random", metadata={"hash_if_set": True})  # COORDINATE_INITS; scratch
@@ -94,6 +98,7 @@ class ModelSettings:
         require(self.step_headers in STEP_HEADERS, "step_headers", self.step_headers, f"one of {', '.join(STEP_HEADERS)}")
         require(self.plan_form in PLAN_FORMS, "plan_form", self.plan_form, f"one of {', '.join(PLAN_FORMS)}")
         require(self.numbers in NUMBERS, "numbers", self.numbers, f"one of {', '.join(NUMBERS)}")
+        require(self.newlines in NEWLINES, "newlines", self.newlines, f"one of {', '.join(NEWLINES)}")
         require(self.positions in POSITIONS, "positions", self.positions, f"one of {', '.join(POSITIONS)}")
         require(self.attention_scale in ATTENTION_SCALES, "attention_scale", self.attention_scale,
                 f"one of {', '.join(ATTENTION_SCALES)}")
@@ -109,6 +114,8 @@ class ModelSettings:
         require(self.rope_theta > 1, "rope_theta", self.rope_theta, "a base above 1")
         require(self.numbers == "whole" or self.kind is ModelKind.scratch, "numbers", self.numbers,
                 "whole for a pretrained model (kind=hf keeps its own tokenizer)")
+        require(self.newlines == "own" or self.kind is ModelKind.scratch, "newlines", self.newlines,
+                "own for a pretrained model (kind=hf keeps its own tokenizer)")
         require(self.positions == "rope" or self.kind is ModelKind.scratch, "positions", self.positions,
                 "rope for a pretrained model (kind=hf keeps its own position encoding)")
         require(self.log_model in LOG_MODEL_CHOICES, "log_model", self.log_model, f"one of {', '.join(LOG_MODEL_CHOICES)}")

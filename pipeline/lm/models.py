@@ -67,7 +67,7 @@ def make_tokenizer(settings: ModelSettings, texts: Iterable[str], frame: int) ->
     """The model's tokenizer: a word-level one over ``texts`` and the cells of ``frame`` (scratch), or the
     pretrained model's own, given a pad token if it has none (`with_pad_token`)."""
     if settings.kind is ModelKind.scratch:
-        return build_word_tokenizer(texts, frame=frame, numbers=settings.numbers)
+        return build_word_tokenizer(texts, frame=frame, numbers=settings.numbers, newlines=settings.newlines)
     return with_pad_token(load_tokenizer(settings.path, trust_remote_code=settings.trust_remote_code))
 
 
@@ -170,7 +170,7 @@ def linear_coordinates(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBas
     std = model.config.initializer_range
     a, b = torch.randn(2, weight.shape[1]) * std
     for word, index in tokenizer.get_vocab().items():
-        cell = parse_cell(word)
+        cell = parse_cell(word.removesuffix("\n"))   # with newlines joined, "(x, y)\n" is the same cell
         if cell is not None:
             weight[index] += cell[0] * a + cell[1] * b
 

@@ -3,7 +3,8 @@
 A coordinate ``(x, y)`` is one piece (one word of this language: the model matches a cell against the
 obstacle lists by token identity instead of assembling five pieces, and sequences are about half as long);
 other pieces are numbers (or their digits: `NUMBER_PIECES`), words and punctuation, each optionally with one
-leading space, plus single whitespace characters. Decoding concatenates pieces, so
+leading space, plus single whitespace characters. With newlines ``joined`` (`NEWLINE_PIECES`) a cell, word or
+punctuation mark that ends a line carries its newline: the same text in about two thirds of the tokens. Decoding concatenates pieces, so
 ``decode(encode(text)) == text`` for any text in the vocabulary. The vocabulary is the sorted set of pieces of the training texts plus every coordinate the
 frame can produce (``-1`` .. ``frame`` on both axes), so extrapolated test worlds never meet an unknown cell.
 """
@@ -18,19 +19,24 @@ from tokenizers import Regex, Tokenizer, decoders, models, pre_tokenizers
 from transformers import PreTrainedTokenizerFast
 
 from pipeline.lm.chat import WORD_LEVEL_FORMAT
-from pipeline.lm.model_settings import NUMBERS
+from pipeline.lm.model_settings import NEWLINES, NUMBERS
 
 # How a number outside a cell is cut (`ModelSettings.numbers`): one piece a number, with its leading space
 # (`whole`: "Step 12" is "Step", " 12"), or one piece a digit, the space its own piece (`digits`: "Step", " ",
 # "1", "2"), so a larger number than training shows is made of pieces that training does show.
 NUMBER_PIECES = {"whole": r" ?-?\d+", "digits": r"\d"}
 assert tuple(NUMBER_PIECES) == NUMBERS
+# Where a newline goes (`ModelSettings.newlines`): its own piece (`own`: "up", "\n"), or at the end of the cell,
+# word or punctuation mark before it (`joined`: "up\n"; a cell then has two words, "(1, 2)" and "(1, 2)\n").
+NEWLINE_PIECES = {"own": "", "joined": r"\n?"}
+assert tuple(NEWLINE_PIECES) == NEWLINES
 
 
-def piece_pattern(numbers: str = "whole") -> str:
+def piece_pattern(numbers: str = "whole", newlines: str = "own") -> str:
     """The pieces' regex. "(" never takes a leading space, so " (1, 1)" is a space and the same cell word as at
     a line start."""
-    return rf"\(-?\d+, -?\d+\)|{NUMBER_PIECES[numbers]}| ?[A-Za-z']+|\n| ?[^\sA-Za-z\d(]|\(|\s"
+    end = NEWLINE_PIECES[newlines]
+    return rf"\(-?\d+, -?\d+\){end}|{NUMBER_PIECES[numbers]}| ?[A-Za-z']+{end}|\n| ?[^\sA-Za-z\d(]{end}|\(|\s"
 
 
 UNK, PAD = "<unk>", "<pad>"
@@ -38,48 +44,54 @@ SPECIAL_TOKENS = (PAD, UNK, WORD_LEVEL_FORMAT.bos, WORD_LEVEL_FORMAT.turn_end,
                   WORD_LEVEL_FORMAT.human_prefix, WORD_LEVEL_FORMAT.gpt_prefix)
 
 
-@lru_cache(maxsize=len(NUMBERS))
-def _pre_tokenizer(numbers: str = "whole") -> pre_tokenizers.PreTokenizer:
-    return pre_tokenizers.Split(Regex(piece_pattern(numbers)), behavior="isolated")
+@lru_cache(maxsize=len(NUMBERS) * len(NEWLINES))
+def _pre_tokenizer(numbers: str = "whole", newlines: str = "own") -> pre_tokenizers.PreTokenizer:
+    return pre_tokenizers.Split(Regex(piece_pattern(numbers, newlines)), behavior="isolated")
 
 
-def pieces(text: str, numbers: str = "whole") -> list[str]:
+def pieces(text: str, numbers: str = "whole", newlines: str = "own") -> list[str]:
     """The pieces a text splits into (each becomes one token)."""
-    return [piece for piece, _ in _pre_tokenizer(numbers).pre_tokenize_str(text)]
+    return [piece for piece, _ in _pre_tokenizer(numbers, newlines).pre_tokenize_str(text)]
 
 
-_PIECE_RES = {numbers: re.compile(piece_pattern(numbers)) for numbers in NUMBERS}
+_PIECE_RES = {(numbers, newlines): re.compile(piece_pattern(numbers, newlines))
+              for numbers in NUMBERS for newlines in NEWLINES}
 
 
 @lru_cache(maxsize=1024)
-def piece_set(text: str, numbers: str = "whole") -> frozenset[str]:
+def piece_set(text: str, numbers: str = "whole", newlines: str = "own") -> frozenset[str]:
     """The distinct pieces of ``text`` (the words a word-level model must have trained to read or write it)."""
-    return frozenset(_PIECE_RES[numbers].findall(text))
+    return frozenset(_PIECE_RES[numbers, newlines].findall(text))
 
 
 # Cached: the instruction turn, the longest, repeats in every conversation.
 @lru_cache(maxsize=1024)
-def count_pieces(text: str, numbers: str = "whole") -> int:
+def count_pieces(text: str, numbers: str = "whole", newlines: str = "own") -> int:
     """How many tokens ``text`` becomes (the tokenizer's own pattern, without building an Encoding)."""
-    return len(_PIECE_RES[numbers].findall(text))
+    return len(_PIECE_RES[numbers, newlines].findall(text))
 
 
-def coverage_text(frame: int) -> str:
-    """Every cell and every number a coordinate can take in a frame (numbers with and without a space)."""
+def coverage_text(frame: int, newlines: str = "own") -> str:
+    """Every cell (with newlines joined, also ending a line) and every number a coordinate can take in a frame
+    (numbers with and without a space)."""
     numbers = range(-1, frame + 1)
-    cells = "".join(f"({x}, {y})" for x in numbers for y in numbers)
+    forms = ("", "\n") if newlines == "joined" else ("",)
+    cells = "".join(f"({x}, {y}){end}" for x in numbers for y in numbers for end in forms)
     return cells + " " + " ".join(str(n) for n in numbers) + " " + ",".join(str(n) for n in numbers)
 
 
-def build_word_tokenizer(texts: Iterable[str], frame: int = 20, numbers: str = "whole") -> PreTrainedTokenizerFast:
+def build_word_tokenizer(texts: Iterable[str], frame: int = 20, numbers: str = "whole",
+                         newlines: str = "own") -> PreTrainedTokenizerFast:
     """A deterministic word-level tokenizer whose vocabulary covers ``texts`` and all frame coordinates;
-    ``numbers``: how it cuts a number (`NUMBER_PIECES`)."""
+    ``numbers``: how it cuts a number (`NUMBER_PIECES`); ``newlines``: where a newline goes (`NEWLINE_PIECES`)."""
     if numbers not in NUMBERS:
         raise ValueError(f"numbers={numbers!r}; allowed: {', '.join(NUMBERS)}")
+    if newlines not in NEWLINES:
+        raise ValueError(f"newlines={newlines!r}; allowed: {', '.join(NEWLINES)}")
     vocab_pieces: set[str] = set()
-    splitter = _pre_tokenizer(numbers)
+    splitter = _pre_tokenizer(numbers, newlines)
     digits = "0123456789" if numbers == "digits" else ""   # every number is made of known pieces
-    for text in [coverage_text(frame), digits, *texts]:
+    for text in [coverage_text(frame, newlines), digits, *texts]:
         vocab_pieces.update(piece for piece, _ in splitter.pre_tokenize_str(text))
     vocab = {token: i for i, token in enumerate(SPECIAL_TOKENS)}
     for piece in sorted(vocab_pieces - set(SPECIAL_TOKENS)):

@@ -114,17 +114,22 @@ class TextSettings:
     # texts.PLAN_FORMS: the paper's Plan of moves, or anchored (each move after the cell it leaves); in the
     # data-build hash only when set.
     plan_form: str = field(default="moves", metadata={"hash_if_set": True})
+    # Where the word-level tokenizer puts a newline (ModelSettings.newlines): as `numbers`, the pieces the summary
+    # counts; in the data-build hash only when set.
+    newlines: str = field(default="own", metadata={"hash_if_set": True})
 
     @classmethod
     def of(cls, direction: str, variant: str, mode: str, seed: int = 0, prompt: str = DEFAULT_PROMPT,
-           step_headers: str = "numbered", numbers: str = "whole", plan_form: str = "moves") -> "TextSettings":
+           step_headers: str = "numbered", numbers: str = "whole", plan_form: str = "moves",
+           newlines: str = "own") -> "TextSettings":
         # Direction-free variants (NONE, DFS): both directions share one dataset (and model). Step headers and
         # the Plan's anchors exist only where a Thought does (maps and CoT); the reachable mode has no Plan.
         if BY_NAME[variant].direction_free:
             step_headers, plan_form = "numbered", "moves"
         if mode != "optimal":
             plan_form = "moves"
-        return cls(text_direction(direction, variant), variant, mode, seed, prompt, step_headers, numbers, plan_form)
+        return cls(text_direction(direction, variant), variant, mode, seed, prompt, step_headers, numbers, plan_form,
+                   newlines)
 
 
 def world_file(data: DataSettings, split: str) -> ResolvedFile | None:
@@ -256,15 +261,16 @@ def write_dataset(out_dir: str | Path, train: list[World], test: list[World], sp
 
     def measured(rows: Iterable[dict]) -> Iterable[dict]:
         for row in rows:
-            token_lengths.append(sum(count_pieces(turn["value"], spec.numbers) + 2 for turn in row["conversations"]))
+            token_lengths.append(sum(count_pieces(turn["value"], spec.numbers, spec.newlines) + 2
+                                     for turn in row["conversations"]))
             for turn in row["conversations"]:
-                train_words.update(piece_set(turn["value"], spec.numbers))
+                train_words.update(piece_set(turn["value"], spec.numbers, spec.newlines))
                 untrained_labels[0] += len(turn.get(UNTRAINED, ()))
             yield row
 
     def words_of(rows: Iterable[dict]) -> Iterable[dict]:
         for row in rows:
-            test_words.append(frozenset().union(*(piece_set(turn["value"], spec.numbers)
+            test_words.append(frozenset().union(*(piece_set(turn["value"], spec.numbers, spec.newlines)
                                                   for turn in row["conversations"])))
             yield row
 
