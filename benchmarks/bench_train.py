@@ -26,6 +26,9 @@ conversations through `pipeline.lm.training.trainer.finetune`, with the default 
 - ``default, paper prompt``: the same on the same worlds with the paper's instruction turns, when ``--model``
   prompts with the task turn alone (``prompt: task``, the CPU default): tokens/s barely move, conversations/s
   is what the switch buys.
+- ``default, newlines <own|joined>``: the same conversations cut by the tokenizer with the other
+  ``model.newlines`` (a newline its own token, or joined to the line's last word): fewer tokens a conversation,
+  so compare conversations/s.
 
 Each run prints two rates: over all its steps (compiling included), and in steady state: the median rate of
 the optimizer steps themselves (forward, backward and update: no batch loading or logging) after the first
@@ -145,7 +148,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--only", choices=("padded-fp32", "packed-fp32", "packed-bf16", "default", "when-faster",
                                            "default, paper prompt", "other-optimizer", "muon-bf16",
-                                           "other-attention", "plain-positions"),
+                                           "other-attention", "plain-positions", "other-newlines"),
                         action="append", help="run only these (repeatable)")
     args = parser.parse_args()
     if not 0 <= args.skip < args.steps:
@@ -159,7 +162,11 @@ def main() -> None:
     if prompt != "paper":  # the same worlds with the paper's instruction turns: what the prompt switch saves
         sets["paper"] = make(args.conversations, args.seed, "paper", model_cfg.plan_form)
     conversations = sets[prompt]
-    tokenizer = build_word_tokenizer(t["value"] for c in [*sets.get("paper", []), *conversations] for t in c)
+    texts_seen = [t["value"] for c in [*sets.get("paper", []), *conversations] for t in c]
+    other_newlines = {"own": "joined", "joined": "own"}[model_cfg.newlines]
+    tokenizers = {newlines: build_word_tokenizer(texts_seen, numbers=model_cfg.numbers, newlines=newlines)
+                  for newlines in (model_cfg.newlines, other_newlines)}
+    tokenizer = tokenizers[model_cfg.newlines]
     lengths = [len(encode_conversation(tokenizer, WORD_LEVEL_FORMAT, c)[0]) for c in conversations]
     probe = make_model(model_cfg, tokenizer, seed=args.seed)
     flops_per_real_token = training_flops(probe, lengths) / sum(lengths)
@@ -169,7 +176,8 @@ def main() -> None:
     faster = "bf16" if use_bf16(train_cfg.bf16, True) else "fp32"
     scope = train_cfg.torch_compile.value
     print(device_line(args.threads))
-    print(f"data ({args.data}, prompt {prompt}): {len(conversations)} conversations, tokens min {min(lengths)} "
+    print(f"data ({args.data}, prompt {prompt}, newlines {model_cfg.newlines}): {len(conversations)} conversations, "
+          f"tokens min {min(lengths)} "
           f"median {statistics.median(lengths):.0f} mean {statistics.fmean(lengths):.0f} max {max(lengths)}; vocab "
           f"{len(tokenizer)}")
     print(f"model ({Path(args.model).name}): {count_parameters(probe) / 1e6:.3f}M parameters, hidden "
@@ -217,18 +225,29 @@ def main() -> None:
     if scope != "none" and train_cfg.position_stretch > 1:
         runs[plain_positions] = runs[default]
         stretch[plain_positions] = 1.0
+    # What the tokenizer's newlines cost (model.newlines): the default's conversations cut the other way.
+    newlines_run = f"{default}, newlines {other_newlines}"
+    if scope != "none":
+        runs[newlines_run] = runs[default]
+        stretch[newlines_run] = stretch[default]
+    run_newlines = {newlines_run: other_newlines}  # name: model.newlines where it is not the model yaml's
     selected = {"default": default, "when-faster": when_faster, "other-optimizer": other_optimizer,
-                "muon-bf16": muon_other, "other-attention": attention_run, "plain-positions": plain_positions}
+                "muon-bf16": muon_other, "other-attention": attention_run, "plain-positions": plain_positions,
+                "other-newlines": newlines_run}
     wanted = {selected.get(name, name) for name in args.only or runs}
     rates: dict[str, tuple[float, float]] = {}  # name: (overall, steady) real tokens/s
     per_token: dict[str, float] = {}  # name: useful training FLOPs per real token of its conversations
+    per_conversation: dict[str, float] = {}  # name: mean real tokens a conversation
     for name, (packing, bf16, bf16_when_faster, compile_scope, run_prompt, optimizer, muon_bf16) in runs.items():
         if name not in wanted:
             continue
         texts = sets[run_prompt]
-        run_lengths = [len(encode_conversation(tokenizer, WORD_LEVEL_FORMAT, c)[0]) for c in texts]
-        per_token[name] = training_flops(probe, run_lengths) / sum(run_lengths)
-        mean_tokens = statistics.fmean(run_lengths)
+        newlines = run_newlines.get(name, model_cfg.newlines)
+        run_tokenizer = tokenizers[newlines]
+        run_lengths = [len(encode_conversation(run_tokenizer, WORD_LEVEL_FORMAT, c)[0]) for c in texts]
+        run_probe = probe if newlines == model_cfg.newlines else make_model(model_cfg, run_tokenizer, seed=args.seed)
+        per_token[name] = training_flops(run_probe, run_lengths) / sum(run_lengths)
+        mean_tokens = per_conversation[name] = statistics.fmean(run_lengths)
         settings = TrainSettings(
             max_steps=args.steps, per_device_batch_size=train_cfg.per_device_batch_size,
             learning_rate=train_cfg.learning_rate, packing=packing, bf16=bf16, bf16_when_faster=bf16_when_faster,
@@ -239,9 +258,10 @@ def main() -> None:
         )
         clock = StepClock()
         with tempfile.TemporaryDirectory() as out:
-            run_model = replace(model_cfg, attn_implementation=attention.get(name, model_cfg.attn_implementation))
-            model = make_model(run_model, tokenizer, seed=args.seed)
-            result = finetune(model, tokenizer, WORD_LEVEL_FORMAT, texts, settings, out, seed=args.seed,
+            run_model = replace(model_cfg, attn_implementation=attention.get(name, model_cfg.attn_implementation),
+                                newlines=newlines)
+            model = make_model(run_model, run_tokenizer, seed=args.seed)
+            result = finetune(model, run_tokenizer, WORD_LEVEL_FORMAT, texts, settings, out, seed=args.seed,
                               max_length=max(run_lengths), callbacks=[clock])
         steady = clock.steady(args.skip)
         rates[name] = (result.tokens_per_second, steady)
@@ -263,8 +283,10 @@ def main() -> None:
         base_all, base_steady = rates[base]
         for name, (overall, steady) in rates.items():
             if name != base:
+                conversations = per_conversation[base] / per_conversation[name]  # tokens/s to conversations/s
                 print(f"{name} / {base} tokens/s: {overall / base_all:.2f}x over all steps, "
-                      f"{steady / base_steady:.2f}x in steady state")
+                      f"{steady / base_steady:.2f}x in steady state; conversations/s: "
+                      f"{conversations * overall / base_all:.2f}x and {conversations * steady / base_steady:.2f}x")
     for name, (overall, steady) in rates.items():
         shares = [f"{100 * rate * per_token[name] / 1e9 / peak[kind]:.0f}%" for rate in (steady, overall)
                   for kind in ("fp32", "bf16")]

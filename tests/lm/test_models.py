@@ -193,9 +193,11 @@ def test_attention_scale_names_what_is_allowed(changes, message):
 
 
 @torch.no_grad()
-def test_linear_coordinate_init_adds_a_plane_to_the_cell_words_alone():
-    """`coordinate_init=linear`: the same model but for the cell words' rows, each moved by x * a + y * b."""
-    tokenizer = build_word_tokenizer(["Grid is from (0, 0) to (3, 2). Goal: (3, 2)\nup"], frame=4)
+@pytest.mark.parametrize("newlines", ["own", "joined"])
+def test_linear_coordinate_init_adds_a_plane_to_the_cell_words_alone(newlines):
+    """`coordinate_init=linear`: the same model but for the cell words' rows, each moved by x * a + y * b (with
+    newlines joined, "(x, y)" and "(x, y)\n" alike)."""
+    tokenizer = build_word_tokenizer(["Grid is from (0, 0) to (3, 2). Goal: (3, 2)\nup"], frame=4, newlines=newlines)
     state = torch.random.get_rng_state()
     plain = _scratch(tokenizer, seed=2).get_input_embeddings().weight
     linear = _scratch(tokenizer, seed=2, coordinate_init="linear").get_input_embeddings().weight
@@ -203,11 +205,12 @@ def test_linear_coordinate_init_adds_a_plane_to_the_cell_words_alone():
     vocab = tokenizer.get_vocab()
     shift = {word: linear[i] - plain[i] for word, i in vocab.items()}
     cells = [word for word in vocab if word.startswith("(")]
-    assert len(cells) == 36 and all(not shift[word].any() for word in vocab if word not in cells)
+    assert len(cells) == 36 * (1 + (newlines == "joined")) and all(not shift[word].any() for word in vocab
+                                                                   if word not in cells)
     a, b = shift["(1, 0)"] - shift["(0, 0)"], shift["(0, 1)"] - shift["(0, 0)"]
     assert a.norm() > 0 and b.norm() > 0 and not torch.allclose(a, b)
     for word in cells:
-        x, y = (int(v) for v in word[1:-1].split(", "))
+        x, y = (int(v) for v in word.removesuffix("\n")[1:-1].split(", "))
         torch.testing.assert_close(shift[word], x * a + y * b, rtol=1e-4, atol=1e-5)
     with pytest.raises(ValueError, match="coordinate_init='grid' is not allowed; expected one of random, linear"):
         ModelSettings(coordinate_init="grid")

@@ -35,6 +35,28 @@ def test_digits_cut_a_number_into_its_digits_with_the_space_apart():
         assert tokenizer.decode(ids) == text and len(ids) == count_pieces(text, "digits")
 
 
+def test_joined_newlines_end_a_line_with_its_last_piece_and_keep_every_text():
+    text = "Thought:\nStep 12:\n(3, 4)\ncut\n(0, 2)\nup\n\nPlan:\n(0, 1). The wall is at (1, 1)"
+    assert pieces(text, "digits", "joined") == ["Thought", ":\n", "Step", " ", "1", "2", ":\n", "(3, 4)\n", "cut\n",
+                                                "(0, 2)\n", "up\n", "\n", "Plan", ":\n", "(0, 1)", ".", " The",
+                                                " wall", " is", " at", " ", "(1, 1)"]
+    tokenizer = build_word_tokenizer(TEXTS, frame=8, numbers="digits", newlines="joined")
+    joined = own = 0
+    for text in TEXTS:
+        ids = tokenizer.encode(text, add_special_tokens=False)
+        assert tokenizer.unk_token_id not in ids and tokenizer.decode(ids) == text
+        assert len(ids) == count_pieces(text, "digits", "joined")
+        joined, own = joined + len(ids), own + count_pieces(text, "digits")
+    assert joined < 0.8 * own   # the same texts in fewer tokens
+    # Both words of every frame cell are known, the one that ends a line too, even where no text has it.
+    for cell in ("(8, -1)", "(-1, 8)", "(7, 7)"):
+        for word in (cell, cell + "\n"):
+            assert tokenizer.convert_tokens_to_ids(word) != tokenizer.unk_token_id
+    # The default cut is unchanged by the switch's existence: a newline is its own token.
+    assert build_word_tokenizer(TEXTS, frame=8, newlines="own").get_vocab() == TOKENIZER.get_vocab()
+    assert "(3, 4)\n" not in TOKENIZER.get_vocab()
+
+
 def test_every_text_round_trips_without_unknown_tokens():
     for text in TEXTS:
         ids = TOKENIZER.encode(text, add_special_tokens=False)

@@ -139,6 +139,8 @@ def test_marking_without_all_moves_is_refused_naming_the_values():
     ("model.log_model=copy", "model.log_model='copy' is not allowed; expected one of transformers, reference"),
     ("model.numbers=roman", "model.numbers='roman' is not allowed; expected one of whole, digits"),
     ("model=hf model.path=x model.numbers=digits", "model.numbers='digits' is not allowed; expected whole for a pretrained"),
+    ("model.newlines=crlf", "model.newlines='crlf' is not allowed; expected one of own, joined"),
+    ("model=hf model.path=x model.newlines=joined", "model.newlines='joined' is not allowed; expected own for a pretrained"),
     ("eval.rules=strict", "eval.rules='strict' is not allowed; expected one of project, paper"),
     ("train.long_conversations=cut", "train.long_conversations='cut' is not allowed; expected one of drop, truncate"),
     ("train.muon_bf16=true train.optimizer=adamw", "train.muon_bf16=True is not allowed; expected false unless optimizer=muon"),

@@ -275,10 +275,10 @@ def test_a_launched_finetune_trains_exactly_what_the_in_process_one_does(tmp_pat
 
 def test_plain_headers_nope_model_and_validation_split_run_end_to_end(tmp_path, capsys):
     """The extrapolation switches through a whole job: the data are written with plain headers, the model is
-    built without RoPE and its tokenizer cuts numbers into digits, and eval.n_valid scores the validation worlds
-    apart from the test worlds."""
+    built without RoPE and its tokenizer cuts numbers into digits and joins each newline to the word before it,
+    and eval.n_valid scores the validation worlds apart from the test worlds."""
     cfg = _cfg(tmp_path, "model.step_headers=plain", "model.positions=nope", "model.numbers=digits", "eval.n_valid=3",
-               "variant=no-all")
+               "model.newlines=joined", "variant=no-all")
     results = run_job(cfg)
     assert results["valid_n_episodes"] == 3 and results["n_episodes"] == 3
     (job,) = _job_runs(cfg)
@@ -293,7 +293,7 @@ def test_plain_headers_nope_model_and_validation_split_run_end_to_end(tmp_path, 
     assert json.loads((Path(model_dir) / "config.json").read_text())["no_rope_layers"] == [0, 0]
     from pipeline.lm.models import load_tokenizer
 
-    assert load_tokenizer(model_dir).tokenize("Step 12:") == ["Step", " ", "1", "2", ":"]
+    assert load_tokenizer(model_dir).tokenize("Step 12:\n(0, 1)\nup") == ["Step", " ", "1", "2", ":\n", "(0, 1)\n", "up"]
     valid = [json.loads(line) for line in open(mlflow.artifacts.download_artifacts(
         run_id=ids["eval"], artifact_path="episodes_valid.jsonl", tracking_uri=cfg.tracking.uri))]
     test = [json.loads(line) for line in open(mlflow.artifacts.download_artifacts(
