@@ -293,7 +293,8 @@ def test_plain_headers_nope_model_and_validation_split_run_end_to_end(tmp_path, 
     assert json.loads((Path(model_dir) / "config.json").read_text())["no_rope_layers"] == [0, 0]
     from pipeline.lm.models import load_tokenizer
 
-    assert load_tokenizer(model_dir).tokenize("Step 12:\n(0, 1)\nup") == ["Step", " ", "1", "2", ":\n", "(0, 1)\n", "up"]
+    assert load_tokenizer(model_dir).tokenize("Step 12:\n(0, 1)\nup") == ["Step", " ", "1", "2", ":\n", "(0, 1)\n",
+                                                                         "up"]
     valid = [json.loads(line) for line in open(mlflow.artifacts.download_artifacts(
         run_id=ids["eval"], artifact_path="episodes_valid.jsonl", tracking_uri=cfg.tracking.uri))]
     test = [json.loads(line) for line in open(mlflow.artifacts.download_artifacts(
