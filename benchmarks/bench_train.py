@@ -163,7 +163,7 @@ def main() -> None:
         sets["paper"] = make(args.conversations, args.seed, "paper", model_cfg.plan_form)
     conversations = sets[prompt]
     texts_seen = [t["value"] for c in [*sets.get("paper", []), *conversations] for t in c]
-    other_newlines = {"own": "joined", "joined": "own"}[model_cfg.newlines]
+    other_newlines = "joined" if model_cfg.newlines == "own" else "own"
     tokenizers = {newlines: build_word_tokenizer(texts_seen, numbers=model_cfg.numbers, newlines=newlines)
                   for newlines in (model_cfg.newlines, other_newlines)}
     tokenizer = tokenizers[model_cfg.newlines]

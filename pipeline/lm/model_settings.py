@@ -35,8 +35,10 @@ COORDINATE_INITS = ("random", "linear")
 # one piece a digit.
 NUMBERS = ("whole", "digits")
 # Where the word-level tokenizer puts a newline (pipeline.lm.tokenizer.NEWLINE_PIECES): its own piece, or joined to
-# the cell, word or punctuation mark that ends the line (the same text in about two thirds of the tokens).
-NEWLINES = ("own", "joined")
+# the cell, word or punctuation mark that ends the line (the same text in about two thirds of the tokens); `composed`
+# cuts as `joined` and ties each joined word's embedding to its word's plus a newline's
+# (pipeline.lm.models.ComposedRows), so "(1, 2)\n" and "(1, 2)" share what is learnt of the cell.
+NEWLINES = ("own", "joined", "composed")
 
 
 class ModelKind(str, Enum):

@@ -152,12 +152,51 @@ def build_scratch_model(tokenizer: PreTrainedTokenizerBase, settings: ModelSetti
         rope_theta=s.rope_theta,
         **extra,
     )
+    if s.newlines == "composed":
+        config.composed_newlines = True   # the trainer keeps the joined rows composed (`ComposedRows`)
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
         model = (LlamaForCausalLM if s.positions == "rope" else SmolLM3ForCausalLM)(config)
         if s.coordinate_init == "linear":
             linear_coordinates(model, tokenizer)
-    return model.to(torch.float32)
+    model = model.to(torch.float32)
+    if s.newlines == "composed":
+        ComposedRows.of(tokenizer).compose(model.get_input_embeddings().weight)
+    return model
+
+
+class ComposedRows:
+    """The embedding rows of a `composed` word-level vocabulary (``model.newlines=composed``): the row of every
+    joined word ("(1, 2)\\n", "up\\n") is its word's row plus the newline's, in the input embedding and (tied)
+    the output head, so what training learns of a cell from either form serves both. The rows stay a plain
+    embedding matrix (a saved model is a plain Llama): `compose` writes the joined rows from the others, and
+    `gradient` (a hook on the weight) moves each joined row's gradient to its two parts, which is the gradient
+    of the composed parametrisation. Composing twice is composing once, so a checkpoint resumes exactly. A
+    joined word whose word alone is not in the vocabulary ("cut\\n") keeps a row of its own."""
+
+    def __init__(self, joined: list[int], words: list[int], newline: int):
+        self.joined, self.words, self.newline = torch.tensor(joined), torch.tensor(words), newline
+
+    @classmethod
+    def of(cls, tokenizer: PreTrainedTokenizerBase) -> "ComposedRows":
+        vocab = tokenizer.get_vocab()
+        if "\n" not in vocab:
+            raise ValueError("newlines=composed needs a newline token in the vocabulary (build_word_tokenizer "
+                             "with newlines='composed' adds one)")
+        pairs = sorted((index, vocab[word[:-1]]) for word, index in vocab.items()
+                       if len(word) > 1 and word.endswith("\n") and word[:-1] in vocab)
+        return cls([j for j, _ in pairs], [w for _, w in pairs], vocab["\n"])
+
+    @torch.no_grad()
+    def compose(self, weight: torch.Tensor) -> None:
+        weight[self.joined] = weight[self.words] + weight[self.newline]
+
+    def gradient(self, grad: torch.Tensor) -> torch.Tensor:
+        joined = grad[self.joined]
+        grad = grad.index_add(0, self.words, joined)
+        grad[self.newline] += joined.sum(0)
+        grad[self.joined] = 0
+        return grad
 
 
 @torch.no_grad()

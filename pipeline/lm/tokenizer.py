@@ -30,7 +30,7 @@ NUMBER_PIECES = {"whole": r" ?-?\d+", "digits": r"\d"}
 assert tuple(NUMBER_PIECES) == NUMBERS
 # Where a newline goes (`ModelSettings.newlines`): its own piece (`own`: "up", "\n"), or at the end of the cell,
 # word or punctuation mark before it (`joined`: "up\n"; a cell then has two words, "(1, 2)" and "(1, 2)\n").
-NEWLINE_PIECES = {"own": "", "joined": r"\n?"}
+NEWLINE_PIECES = {"own": "", "joined": r"\n?", "composed": r"\n?"}
 assert tuple(NEWLINE_PIECES) == NEWLINES
 
 
@@ -75,11 +75,13 @@ def count_pieces(text: str, numbers: str = "whole", newlines: str = "own") -> in
 
 def coverage_text(frame: int, newlines: str = "own") -> str:
     """Every cell (with newlines joined, also ending a line) and every number a coordinate can take in a frame
-    (numbers with and without a space)."""
+    (numbers with and without a space); with newlines `composed`, also a newline alone (the row every joined
+    word adds to its word's: `pipeline.lm.models.ComposedRows`)."""
     numbers = range(-1, frame + 1)
-    forms = ("", "\n") if newlines == "joined" else ("",)
+    forms = ("", "\n") if newlines != "own" else ("",)
     cells = "".join(f"({x}, {y}){end}" for x in numbers for y in numbers for end in forms)
-    return cells + " " + " ".join(str(n) for n in numbers) + " " + ",".join(str(n) for n in numbers)
+    newline = " \n" if newlines == "composed" else ""
+    return cells + " " + " ".join(str(n) for n in numbers) + " " + ",".join(str(n) for n in numbers) + newline
 
 
 def build_word_tokenizer(texts: Iterable[str], frame: int = 20, numbers: str = "whole",

@@ -5,6 +5,7 @@ from pipeline.lm.chat import WORD_LEVEL_FORMAT, ChatFormat
 from pipeline.lm.model_settings import ModelSettings
 from pipeline.lm.models import (
     PAD_TOKEN,
+    ComposedRows,
     ModelLoadError,
     LOG_LENGTH_ATTENTION,
     attention_scale,
@@ -241,3 +242,46 @@ def test_a_tokenizer_without_a_pad_token_gets_the_papers_and_the_model_a_row_for
     padded = ModelSettings(kind="hf", path=str(tmp_path))
     assert make_tokenizer(padded, [], frame=0).pad_token_id == tokenizer.pad_token_id
     assert make_model(padded, make_tokenizer(padded, [], frame=0)).config.vocab_size == len(tokenizer)
+
+
+def test_composed_newlines_tie_each_joined_row_to_its_word_and_the_newline():
+    """newlines=composed: "(1, 2)\n" is "(1, 2)" plus "\n", input and (tied) output alike; a joined word without
+    its word alone ("cut\n") keeps a row of its own; the rest is the joined model's draw."""
+    text = "Grid is from (0, 0) to (3, 2). Goal: (3, 2)\nThought:\n(1, 2)\ncut\nup\nup right\nPlan:"
+    composed_tokenizer = build_word_tokenizer([text], frame=4, newlines="composed")
+    vocab = composed_tokenizer.get_vocab()
+    assert "\n" in vocab and "\n" not in build_word_tokenizer([text], frame=4, newlines="joined").get_vocab()
+    model = _scratch(composed_tokenizer, newlines="composed")
+    assert model.config.composed_newlines and model.get_output_embeddings().weight is model.get_input_embeddings().weight
+    weight = model.get_input_embeddings().weight
+    for word in ("(1, 2)", "(-1, 4)", "up", ":"):
+        torch.testing.assert_close(weight[vocab[word + "\n"]], weight[vocab[word]] + weight[vocab["\n"]])
+    rows = ComposedRows.of(composed_tokenizer)
+    joined = {word for word, index in vocab.items() if index in rows.joined.tolist()}
+    assert joined == {word for word in vocab if word.startswith("(") and word.endswith("\n")} | {"up\n", ":\n"}
+    assert len(joined) == 36 + 2 and {"cut\n", " right\n"} <= set(vocab)   # "cut", " right": only at a line end
+    with pytest.raises(ValueError, match="needs a newline token"):
+        ComposedRows.of(build_word_tokenizer([text], frame=4, newlines="joined"))
+
+
+def test_composed_rows_gradient_is_the_gradient_of_the_composition():
+    """The hook's gradient on the plain weight equals autograd's through an explicit composition of free rows."""
+    tokenizer = build_word_tokenizer(["Goal: (3, 2)\nThought:\n(1, 2)\nup\n(2, 2)\nPlan:\nup"], frame=4,
+                                     newlines="composed")
+    model = _scratch(tokenizer, seed=3, newlines="composed")
+    rows = ComposedRows.of(tokenizer)
+    ids = tokenizer("Goal: (3, 2)\nThought:\n(1, 2)\nup\n(2, 2)\nPlan:\nup", return_tensors="pt")["input_ids"]
+    weight = model.get_input_embeddings().weight
+    hook = weight.register_hook(rows.gradient)
+    model(input_ids=ids, labels=ids).loss.backward()
+    hook.remove()
+    hooked = weight.grad.clone()
+
+    free = weight.detach().clone().requires_grad_()
+    composed = free.index_put((rows.joined,), free[rows.words] + free[rows.newline])
+    names = ("model.embed_tokens.weight", "lm_head.weight")
+    loss = torch.func.functional_call(model, {name: composed for name in names}, (),
+                                      {"input_ids": ids, "labels": ids}, tie_weights=False).loss
+    loss.backward()
+    torch.testing.assert_close(hooked, free.grad)
+    assert hooked[rows.joined].abs().sum() == 0 and hooked[rows.newline].abs().sum() > 0

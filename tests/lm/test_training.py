@@ -19,7 +19,7 @@ from pipeline.lm.training.settings import TrainSettings
 from pipeline.lm.training.result import RESULT_FILE
 from pipeline.lm.training.trainer import _training_arguments, finetune
 from pipeline.lm.model_settings import ModelSettings
-from pipeline.lm.models import build_scratch_model, load_chat_format, load_model
+from pipeline.lm.models import ComposedRows, build_scratch_model, load_chat_format, load_model
 from pipeline.lm.tokenizer import build_word_tokenizer
 
 TINY = dict(hidden_size=32, num_layers=2, num_heads=2, intermediate_size=64, max_length=512)
@@ -270,6 +270,32 @@ def test_loss_falls_and_held_out_tokens_are_learned(tokenizer, conversations, tm
     assert result.token_accuracy > 0.4  # chance is 1/len(tokenizer), under 0.02
     assert result.global_step == 30
     assert result.tokens_trained > 0 and result.tokens_per_second > 0
+
+
+@pytest.mark.parametrize("optimizer", ["adamw", "muon"])
+def test_composed_newlines_train_and_stay_composed(conversations, tmp_path, optimizer):
+    """newlines=composed: training moves the words' and the newline's rows and keeps every joined row their sum,
+    in the model trained and the model saved (a plain Llama); the same model without it trains its own rows."""
+    tokenizer = build_word_tokenizer((turn["value"] for turns in conversations for turn in turns), newlines="composed")
+    rows = ComposedRows.of(tokenizer)
+    model = build_scratch_model(tokenizer, ModelSettings(**TINY, newlines="composed"), seed=0)
+    before = model.get_input_embeddings().weight.detach().clone()
+    settings = TrainSettings(max_steps=12, optimizer=optimizer, **QUIET)
+    result = finetune(model, tokenizer, WORD_LEVEL_FORMAT, conversations, settings, tmp_path)
+    for weight in (model.get_input_embeddings().weight, load_model(result.model_dir).get_input_embeddings().weight):
+        torch.testing.assert_close(weight[rows.joined], weight[rows.words] + weight[rows.newline], atol=1e-6, rtol=0)
+    after = model.get_input_embeddings().weight
+    assert not torch.allclose(after[rows.newline], before[rows.newline]) and not torch.allclose(after[rows.words],
+                                                                                                 before[rows.words])
+    assert result.global_step == 12
+    ids = torch.tensor([tokenizer("Goal: (1, 2)\nup")["input_ids"]])
+    model.zero_grad()
+    model(input_ids=ids, labels=ids).loss.backward()   # after training the hook is gone: joined rows get gradient
+    assert after.grad[rows.joined].abs().sum() > 0
+    plain = build_scratch_model(tokenizer, ModelSettings(**TINY, newlines="joined"), seed=0)
+    finetune(plain, tokenizer, WORD_LEVEL_FORMAT, conversations, settings, tmp_path / "plain")
+    weight = plain.get_input_embeddings().weight
+    assert not torch.allclose(weight[rows.joined], weight[rows.words] + weight[rows.newline], atol=1e-3)
 
 
 def test_precision_and_compile_settings_reach_the_trainer(tmp_path):

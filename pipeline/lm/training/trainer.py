@@ -9,6 +9,7 @@ Checkpoints live in ``output_dir/checkpoints/checkpoint-<step>``; calling `finet
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import os
@@ -22,7 +23,7 @@ from transformers.trainer_callback import ProgressCallback
 from transformers.trainer_utils import PREFIX_CHECKPOINT_DIR, get_last_checkpoint
 
 from pipeline.lm.chat import IGNORE_INDEX, ChatFormat
-from pipeline.lm.models import save_chat_format
+from pipeline.lm.models import ComposedRows, save_chat_format
 from pipeline.lm.training.batches import (
     ConversationDataset, LengthGroupedBatches, RightPadCollator, split_eval, stretched_batch_positions,
     tokenize_conversations,
@@ -169,6 +170,38 @@ def _training_arguments(settings: TrainSettings, checkpoints: Path, seed: int) -
         dataloader_pin_memory=False,  # nothing to pin for on a CPU; on a GPU the gain is negligible here
     )
 
+class _Compose(TrainerCallback):
+    """After every optimizer step, the joined rows written anew from their parts (`ComposedRows.compose`)."""
+
+    def __init__(self, rows: ComposedRows, weight: torch.Tensor):
+        self.rows, self.weight = rows, weight
+
+    def on_optimizer_step(self, args, state, control, **kwargs):
+        self.rows.compose(self.weight)
+
+
+@contextlib.contextmanager
+def composed_rows(trainer: Trainer, tokenizer: PreTrainedTokenizerBase):
+    """While ``trainer`` trains a model built with ``newlines=composed`` (its config's ``composed_newlines``),
+    keep its joined rows composed (`ComposedRows`): each joined row's gradient goes to its word's and the
+    newline's rows, and after every optimizer step the joined rows are written anew from them. Other models:
+    nothing."""
+    model = trainer.model
+    if not getattr(model.config, "composed_newlines", False):
+        yield
+        return
+    if trainer.is_fsdp_enabled:
+        raise ValueError("newlines=composed is not supported with train.accelerate_config (FSDP shards the rows)")
+    rows, weight = ComposedRows.of(tokenizer), model.get_input_embeddings().weight
+    callback, hook = _Compose(rows, weight), weight.register_hook(rows.gradient)
+    trainer.add_callback(callback)
+    try:
+        yield
+    finally:
+        hook.remove()
+        trainer.remove_callback(callback)
+
+
 def checkpoint_steps(output_dir: str | Path) -> list[int]:
     """Steps of the checkpoints present under ``output_dir/checkpoints``, ascending."""
     folder = Path(output_dir) / CHECKPOINTS_DIR
@@ -244,7 +277,7 @@ def _finetune(model, tokenizer, fmt, conversations, settings, output_dir, seed, 
     if resume:
         log.info("resuming from %s", resume)
     started = time.perf_counter()
-    with compiled_blocks(model, settings.torch_compile):
+    with compiled_blocks(model, settings.torch_compile), composed_rows(trainer, tokenizer):
         output = trainer.train(resume_from_checkpoint=resume)
     train_seconds = time.perf_counter() - started
 
