@@ -26,9 +26,9 @@ conversations through `pipeline.lm.training.trainer.finetune`, with the default 
 - ``default, paper prompt``: the same on the same worlds with the paper's instruction turns, when ``--model``
   prompts with the task turn alone (``prompt: task``, the CPU default): tokens/s barely move, conversations/s
   is what the switch buys.
-- ``default, newlines <own|joined>``: the same conversations cut by the tokenizer with the other
-  ``model.newlines`` (a newline its own token, or joined to the line's last word): fewer tokens a conversation,
-  so compare conversations/s.
+- ``default, newlines <own|joined|composed>``: the same conversations cut by the tokenizer with another
+  ``model.newlines`` (``--other-newlines``; a newline its own token, or joined to the line's last word, with the
+  joined words' rows composed or not): fewer tokens a conversation, so compare conversations/s.
 
 Each run prints two rates: over all its steps (compiling included), and in steady state: the median rate of
 the optimizer steps themselves (forward, backward and update: no batch loading or logging) after the first
@@ -61,7 +61,7 @@ from omegaconf import OmegaConf
 from transformers import TrainerCallback
 
 from pipeline.lm.chat import WORD_LEVEL_FORMAT, encode_conversation
-from pipeline.lm.model_settings import ModelSettings
+from pipeline.lm.model_settings import NEWLINES, ModelSettings
 from pipeline.workflow.data_build import DataSettings
 from pipeline.lm.training.settings import TrainSettings
 from pipeline.lm.training.compile import matmul_peak, use_bf16
@@ -146,6 +146,8 @@ def main() -> None:
     parser.add_argument("--model", default=str(ROOT / "conf" / "model" / "tiny.yaml"), help="a scratch model yaml")
     parser.add_argument("--train", default=str(ROOT / "conf" / "train" / "cpu.yaml"), help="a train yaml")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--other-newlines", choices=NEWLINES, default=None,
+                        help="the other-newlines run's cut (default: joined, or own if the model joins them)")
     parser.add_argument("--only", choices=("padded-fp32", "packed-fp32", "packed-bf16", "default", "when-faster",
                                            "default, paper prompt", "other-optimizer", "muon-bf16",
                                            "other-attention", "plain-positions", "other-newlines"),
@@ -163,7 +165,9 @@ def main() -> None:
         sets["paper"] = make(args.conversations, args.seed, "paper", model_cfg.plan_form)
     conversations = sets[prompt]
     texts_seen = [t["value"] for c in [*sets.get("paper", []), *conversations] for t in c]
-    other_newlines = "joined" if model_cfg.newlines == "own" else "own"
+    other_newlines = args.other_newlines or ("joined" if model_cfg.newlines == "own" else "own")
+    if other_newlines == model_cfg.newlines:
+        parser.error(f"--other-newlines {other_newlines} is the model's own (newlines: {model_cfg.newlines})")
     tokenizers = {newlines: build_word_tokenizer(texts_seen, numbers=model_cfg.numbers, newlines=newlines)
                   for newlines in (model_cfg.newlines, other_newlines)}
     tokenizer = tokenizers[model_cfg.newlines]

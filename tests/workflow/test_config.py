@@ -217,7 +217,7 @@ def test_the_extrapolation_study_runs_each_lever_alone_with_two_seeds_on_the_def
                        "linear_cells": ["model.coordinate_init"], "weight_decay": ["train.weight_decay"],
                        "wide_mlp": ["model.intermediate_size"], "edge_labels": ["data.mask_edge_labels"],
                        "axes": ["model.prompt"], "plain_positions": ["train.position_stretch"],
-                       "moves_plan": ["model.plan_form"], "joined": ["model.newlines"]}
+                       "moves_plan": ["model.plan_form"], "joined": ["model.newlines"], "composed": ["model.newlines"]}
 
 
 def test_cpu_study_is_the_optimal_half_of_table_1_with_two_seeds_where_asked():
