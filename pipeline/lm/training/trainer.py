@@ -170,6 +170,7 @@ def _training_arguments(settings: TrainSettings, checkpoints: Path, seed: int) -
         dataloader_pin_memory=False,  # nothing to pin for on a CPU; on a GPU the gain is negligible here
     )
 
+
 class _Compose(TrainerCallback):
     """After every optimizer step, the joined rows written anew from their parts (`ComposedRows.compose`)."""
 
