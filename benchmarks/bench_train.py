@@ -249,7 +249,9 @@ def main() -> None:
         newlines = run_newlines.get(name, model_cfg.newlines)
         run_tokenizer = tokenizers[newlines]
         run_lengths = [len(encode_conversation(run_tokenizer, WORD_LEVEL_FORMAT, c)[0]) for c in texts]
-        run_probe = probe if newlines == model_cfg.newlines else make_model(model_cfg, run_tokenizer, seed=args.seed)
+        run_model = replace(model_cfg, attn_implementation=attention.get(name, model_cfg.attn_implementation),
+                            newlines=newlines)
+        run_probe = probe if newlines == model_cfg.newlines else make_model(run_model, run_tokenizer, seed=args.seed)
         per_token[name] = training_flops(run_probe, run_lengths) / sum(run_lengths)
         mean_tokens = per_conversation[name] = statistics.fmean(run_lengths)
         settings = TrainSettings(
@@ -262,8 +264,6 @@ def main() -> None:
         )
         clock = StepClock()
         with tempfile.TemporaryDirectory() as out:
-            run_model = replace(model_cfg, attn_implementation=attention.get(name, model_cfg.attn_implementation),
-                                newlines=newlines)
             model = make_model(run_model, run_tokenizer, seed=args.seed)
             result = finetune(model, run_tokenizer, WORD_LEVEL_FORMAT, texts, settings, out, seed=args.seed,
                               max_length=max(run_lengths), callbacks=[clock])
