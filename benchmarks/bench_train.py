@@ -64,7 +64,7 @@ from pipeline.lm.chat import WORD_LEVEL_FORMAT, encode_conversation
 from pipeline.lm.model_settings import NEWLINES, ModelSettings
 from pipeline.workflow.data_build import DataSettings
 from pipeline.lm.training.settings import TrainSettings
-from pipeline.lm.training.compile import matmul_peak, use_bf16
+from pipeline.lm.training.compile import cpu_has_bf16, matmul_peak, use_bf16
 from pipeline.lm.training.trainer import finetune
 from pipeline.core.generators import generate_worlds
 from pipeline.lm.models import make_model
@@ -80,9 +80,13 @@ DEVICE = "cuda" if torch.cuda.is_available() else "cpu"
 
 
 def peaks(threads: int) -> dict[str, float]:
+    """The matmul peaks (GFLOP/s) of fp32 and, where bf16 runs in hardware, of bf16. A CPU without bf16
+    hardware emulates it at about 1 GFLOP/s: no peak to compare a run with, and about 10 s a measurement."""
     torch.set_num_threads(threads)
-    return {kind: matmul_peak(dtype, device=DEVICE, seconds=2.0)
-            for kind, dtype in (("fp32", torch.float32), ("bf16", torch.bfloat16))}
+    kinds = {"fp32": torch.float32}
+    if DEVICE == "cuda" or cpu_has_bf16():
+        kinds["bf16"] = torch.bfloat16
+    return {kind: matmul_peak(dtype, device=DEVICE, seconds=2.0) for kind, dtype in kinds.items()}
 
 
 def device_line(threads: int) -> str:
@@ -193,7 +197,8 @@ def main() -> None:
           f"{args.skip + 1}")
 
     measured = [peaks(args.threads)]
-    print("matmul peak before: " + ", ".join(f"{k} {v:.1f} GFLOP/s" for k, v in measured[0].items()))
+    print("matmul peak before: " + ", ".join(f"{k} {v:.1f} GFLOP/s" for k, v in measured[0].items())
+          + ("" if "bf16" in measured[0] else "; bf16 not measured (no bf16 hardware: emulated)"))
     # name: (packing, bf16, bf16_when_faster, torch_compile, prompt, optimizer, muon_bf16)
     base, ns_bf16 = train_cfg.optimizer, train_cfg.muon_bf16
     runs = {"padded-fp32": (False, False, False, "none", prompt, base, ns_bf16),
@@ -292,10 +297,9 @@ def main() -> None:
                       f"{steady / base_steady:.2f}x in steady state; conversations/s: "
                       f"{conversations * overall / base_all:.2f}x and {conversations * steady / base_steady:.2f}x")
     for name, (overall, steady) in rates.items():
-        shares = [f"{100 * rate * per_token[name] / 1e9 / peak[kind]:.0f}%" for rate in (steady, overall)
-                  for kind in ("fp32", "bf16")]
-        print(f"{name}: steady state {shares[0]} of the fp32 peak ({shares[1]} of bf16); over all steps "
-              f"{shares[2]} ({shares[3]})")
+        shares = [", ".join(f"{100 * rate * per_token[name] / 1e9 / value:.0f}% of the {kind} peak"
+                            for kind, value in peak.items()) for rate in (steady, overall)]
+        print(f"{name}: steady state {shares[0]}; over all steps {shares[1]}")
 
 
 if __name__ == "__main__":

@@ -74,7 +74,7 @@ def test_a_preempted_job_is_requeued_by_submitit_and_resumes(tmp_path):
     leave SIGTERM to submitit (which ignores it) rather than end on it. Here the local executor stands in."""
     command = [sys.executable, "-m", "pipeline.run", "-m", f"tracking.root={tmp_path}",
                "hydra/launcher=local_submitit", "hydra.launcher.timeout_min=5", "threads=1", *TOY,
-               "train.max_steps=2000", "train.save_steps=100", "direction=fwd"]
+               "train.max_steps=800", "train.save_steps=100", "direction=fwd"]
     log = open(tmp_path / "sweep.log", "w")
     sweep = subprocess.Popen(command, cwd=tmp_path, stdout=log, stderr=subprocess.STDOUT,
                              env={**os.environ, "PYTHONUNBUFFERED": "1"})
