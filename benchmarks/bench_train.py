@@ -37,12 +37,14 @@ took over the steady rate (compiling, mostly) is printed too. Inductor keeps com
 (``TORCHINDUCTOR_CACHE_DIR``): a second run compiles from that cache, in a fraction of the time.
 
 ``--data cpu`` (the default) is what the default job trains on: BWD marking-deadend conversations of 2..4-cell
-worlds (about 300-480 tokens). ``--data paper``: FWD conversations of 300-1,500 tokens, where padding costs more.
+worlds (80-230 tokens with the default's cut). ``--data paper``: FWD conversations of 300-1,500 tokens, where
+padding costs more.
 
 tokens/s counts real tokens. Achieved FLOP/s counts useful work only (6N per token plus causal attention,
 padding excluded), so it compares with a matmul peak. Peaks (fp32 and bf16 matmuls: 1024^3 on a CPU,
 8192^3 on a GPU, where the Trainer then trains) are measured before and after the runs, because this machine
-is shared and its speed moves; the best is used.
+is shared and its speed moves; the best is used. A CPU without bf16 hardware has no bf16 peak (emulated at about
+1 GFLOP/s): there only the fp32 peak is measured and the shares are of it.
 """
 
 from __future__ import annotations
