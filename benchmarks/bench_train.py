@@ -83,7 +83,7 @@ DEVICE = "cuda" if torch.cuda.is_available() else "cpu"
 
 def peaks(threads: int) -> dict[str, float]:
     """The matmul peaks (GFLOP/s) of fp32 and, where bf16 runs in hardware, of bf16. A CPU without bf16
-    hardware emulates it at about 1 GFLOP/s: no peak to compare a run with, and about 10 s a measurement."""
+    hardware emulates it at about 1 GFLOP/s: no peak to compare a run with, and about 18 s a measurement."""
     torch.set_num_threads(threads)
     kinds = {"fp32": torch.float32}
     if DEVICE == "cuda" or cpu_has_bf16():

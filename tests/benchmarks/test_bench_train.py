@@ -16,7 +16,7 @@ ROOT = Path(__file__).resolve().parents[2]
 def test_bench_train_runs_the_default_against_the_other_newline_cut(tmp_path):
     """The default model yaml (newlines composed) against `own`, each run built with its own cut, through the CPU
     default's train yaml (compiled layers): both print their rates and the ratio line. The bf16 peak is measured
-    only where bf16 runs in hardware (emulated, it is no peak and takes about 10 s a measurement)."""
+    only where bf16 runs in hardware (emulated, it is no peak and takes about 18 s a measurement)."""
     result = subprocess.run(
         [sys.executable, str(ROOT / "benchmarks" / "bench_train.py"), "--only", "default", "--only", "other-newlines",
          "--conversations", "16", "--steps", "3", "--skip", "1", "--threads", "1",
