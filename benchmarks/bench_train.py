@@ -1,6 +1,6 @@
 """Training throughput: the plain padded Trainer against ours, and FLOP/s against this machine's matmul peaks.
 
-    python benchmarks/bench_train.py [--data cpu|paper] [--steps 60] [--skip 10] [--threads 2]
+    python benchmarks/bench_train.py [--data cpu|paper] [--steps 60] [--skip 10] [--threads 2] [--rounds 1]
                                      [--model conf/model/tiny.yaml] [--train conf/train/cpu.yaml]
 
 Every run trains the same scratch model (shape from ``--model``, the CPU default unless told) on the same
@@ -35,6 +35,11 @@ the optimizer steps themselves (forward, backward and update: no batch loading o
 ``--skip`` (compiling, and the kernels oneDNN builds for each new batch width, mostly done). The time the steps
 took over the steady rate (compiling, mostly) is printed too. Inductor keeps compiled kernels on disk
 (``TORCHINDUCTOR_CACHE_DIR``): a second run compiles from that cache, in a fraction of the time.
+
+``--rounds N`` runs the selection N times, in turn and then reversed (A B, B A, ...), and reports each run's
+median over rounds with the steady ratio of every round beside it. One pass can mislead on a machine whose speed
+drifts within minutes: on a Zen 4 EPYC, one pass of 80 steps put Muon's bf16 iterations at 1.19x the default,
+the next pass of 150 steps at 1.05x, and the two whole jobs took 12 min 58 s and 12 min 52 s (README, Speed).
 
 ``--data cpu`` (the default) is what the default job trains on: BWD marking-deadend conversations of 2..4-cell
 worlds (80-230 tokens with the default's cut). ``--data paper``: FWD conversations of 300-1,500 tokens, where
@@ -152,6 +157,8 @@ def main() -> None:
     parser.add_argument("--model", default=str(ROOT / "conf" / "model" / "tiny.yaml"), help="a scratch model yaml")
     parser.add_argument("--train", default=str(ROOT / "conf" / "train" / "cpu.yaml"), help="a train yaml")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--rounds", type=int, default=1,
+                        help="run the selected runs this many times, in turn and reversed (ABBA): drift cancels")
     parser.add_argument("--other-newlines", choices=NEWLINES, default=None,
                         help="the other-newlines run's cut (default: joined, or own if the model joins them)")
     parser.add_argument("--only", choices=("padded-fp32", "packed-fp32", "packed-bf16", "default", "when-faster",
@@ -161,6 +168,8 @@ def main() -> None:
     args = parser.parse_args()
     if not 0 <= args.skip < args.steps:
         parser.error(f"--skip {args.skip} must be at least 0 and below --steps {args.steps}")
+    if args.rounds < 1:
+        parser.error(f"--rounds {args.rounds} must be at least 1")
     transformers.logging.set_verbosity_error()
 
     model_cfg, train_cfg = preset(ModelSettings, args.model), preset(TrainSettings, args.train)
@@ -246,12 +255,15 @@ def main() -> None:
                 "muon-bf16": muon_other, "other-attention": attention_run, "plain-positions": plain_positions,
                 "other-newlines": newlines_run}
     wanted = {selected.get(name, name) for name in args.only or runs}
-    rates: dict[str, tuple[float, float]] = {}  # name: (overall, steady) real tokens/s
+    rounds: dict[str, list[tuple[float, float]]] = {}  # name: (overall, steady) real tokens/s of each round
     per_token: dict[str, float] = {}  # name: useful training FLOPs per real token of its conversations
     per_conversation: dict[str, float] = {}  # name: mean real tokens a conversation
-    for name, (packing, bf16, bf16_when_faster, compile_scope, run_prompt, optimizer, muon_bf16) in runs.items():
-        if name not in wanted:
-            continue
+    chosen = [name for name in runs if name in wanted]
+    # Round k runs the selection in turn, round k+1 reversed (A B, B A, ...): a machine whose speed drifts during
+    # the benchmark favours no run, and the first run's cold compile falls to each run once every two rounds.
+    schedule = [(k, name) for k in range(args.rounds) for name in (chosen if k % 2 == 0 else chosen[::-1])]
+    for k, name in schedule:
+        packing, bf16, bf16_when_faster, compile_scope, run_prompt, optimizer, muon_bf16 = runs[name]
         texts = sets[run_prompt]
         newlines = run_newlines.get(name, model_cfg.newlines)
         run_tokenizer = tokenizers[newlines]
@@ -275,11 +287,12 @@ def main() -> None:
             result = finetune(model, run_tokenizer, WORD_LEVEL_FORMAT, texts, settings, out, seed=args.seed,
                               max_length=max(run_lengths), callbacks=[clock])
         steady = clock.steady(args.skip)
-        rates[name] = (result.tokens_per_second, steady)
+        rounds.setdefault(name, []).append((result.tokens_per_second, steady))
         # Steady time for all the steps, against the time they took: what compiling (or warming up) cost.
         tokens = sum(n for _, n in clock.steps)
         warmup = sum(t for t, _ in clock.steps) - tokens / steady
-        print(f"{name}: {result.tokens_per_second:.0f} real tokens/s over all steps, {steady:.0f} in steady "
+        label = f"{name} (round {k + 1})" if args.rounds > 1 else name
+        print(f"{label}: {result.tokens_per_second:.0f} real tokens/s over all steps, {steady:.0f} in steady "
               f"state ({steady * per_token[name] / 1e9:.1f} GFLOP/s useful; {steady / mean_tokens:.1f} "
               f"conversations/s of {mean_tokens:.0f} tokens); real-token fraction "
               f"{result.real_token_fraction:.3f}; {result.train_seconds:.1f} s for {result.global_step} steps, "
@@ -288,6 +301,9 @@ def main() -> None:
     peak = {k: max(m[k] for m in measured) for k in measured[0]}
     print("matmul peak after: " + ", ".join(f"{k} {v:.1f} GFLOP/s" for k, v in measured[1].items())
           + "; using the best: " + ", ".join(f"{k} {v:.1f}" for k, v in peak.items()))
+    # Over rounds: the median of each run's rates (one round: its rates).
+    rates = {name: tuple(statistics.median(r[i] for r in measured_rounds) for i in (0, 1))
+             for name, measured_rounds in rounds.items()}
     for base in ("padded-fp32", default):
         if base not in rates:
             continue
@@ -295,8 +311,12 @@ def main() -> None:
         for name, (overall, steady) in rates.items():
             if name != base:
                 conversations = per_conversation[base] / per_conversation[name]  # tokens/s to conversations/s
+                each = ""
+                if args.rounds > 1:  # the steady ratio of each round: its spread is the drift's size
+                    each = " (rounds: " + ", ".join(f"{b[1] / a[1]:.2f}x" for a, b in
+                                                    zip(rounds[base], rounds[name])) + ")"
                 print(f"{name} / {base} tokens/s: {overall / base_all:.2f}x over all steps, "
-                      f"{steady / base_steady:.2f}x in steady state; conversations/s: "
+                      f"{steady / base_steady:.2f}x in steady state{each}; conversations/s: "
                       f"{conversations * overall / base_all:.2f}x and {conversations * steady / base_steady:.2f}x")
     for name, (overall, steady) in rates.items():
         shares = [", ".join(f"{100 * rate * per_token[name] / 1e9 / value:.0f}% of the {kind} peak"
