@@ -39,7 +39,8 @@ took over the steady rate (compiling, mostly) is printed too. Inductor keeps com
 ``--rounds N`` runs the selection N times, in turn and then reversed (A B, B A, ...), and reports each run's
 median over rounds with the steady ratio of every round beside it. One pass can mislead on a machine whose speed
 drifts within minutes: on a Zen 4 EPYC, one pass of 80 steps put Muon's bf16 iterations at 1.19x the default,
-the next pass of 150 steps at 1.05x, and the two whole jobs took 12 min 58 s and 12 min 52 s (README, Speed).
+the next pass of 150 steps at 1.05x; four rounds of 120 steps gave 1.14x, 1.09x, 1.16x and 1.14x, while the
+default's own rate fell by a quarter from the first round to the last (README, Speed).
 
 ``--data cpu`` (the default) is what the default job trains on: BWD marking-deadend conversations of 2..4-cell
 worlds (80-230 tokens with the default's cut). ``--data paper``: FWD conversations of 300-1,500 tokens, where
@@ -259,8 +260,8 @@ def main() -> None:
     per_token: dict[str, float] = {}  # name: useful training FLOPs per real token of its conversations
     per_conversation: dict[str, float] = {}  # name: mean real tokens a conversation
     chosen = [name for name in runs if name in wanted]
-    # Round k runs the selection in turn, round k+1 reversed (A B, B A, ...): a machine whose speed drifts during
-    # the benchmark favours no run, and the first run's cold compile falls to each run once every two rounds.
+    # Round k runs the selection in turn, round k+1 reversed (A B, B A, ...): a machine whose speed drifts steadily
+    # during the benchmark favours no run. Only the very first run compiles cold; --skip leaves that out.
     schedule = [(k, name) for k in range(args.rounds) for name in (chosen if k % 2 == 0 else chosen[::-1])]
     for k, name in schedule:
         packing, bf16, bf16_when_faster, compile_scope, run_prompt, optimizer, muon_bf16 = runs[name]
