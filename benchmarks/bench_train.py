@@ -38,9 +38,10 @@ took over the steady rate (compiling, mostly) is printed too. Inductor keeps com
 
 ``--rounds N`` runs the selection N times, in turn and then reversed (A B, B A, ...), and reports each run's
 median over rounds with the steady ratio of every round beside it. One pass can mislead on a machine whose speed
-drifts within minutes: on a Zen 4 EPYC, one pass of 80 steps put Muon's bf16 iterations at 1.19x the default,
-the next pass of 150 steps at 1.05x; four rounds of 120 steps gave 1.14x, 1.09x, 1.16x and 1.14x, while the
-default's own rate fell by a quarter from the first round to the last (README, Speed).
+drifts within minutes: on a Zen 4 EPYC (on the earlier data, the job's first worlds), one pass of 80 steps put
+Muon's bf16 iterations at 1.19x the default, the next pass of 150 steps at 1.05x; four rounds of 120 steps gave
+1.14x, 1.09x, 1.16x and 1.14x, while the default's own rate fell by a quarter from the first round to the last
+(README, Speed).
 
 ``--data cpu`` (the default) is what the default job trains on: BWD marking-deadend conversations of 2..4-cell
 worlds (80-230 tokens with the default's cut). ``--data paper``: FWD conversations of 300-1,500 tokens, where
