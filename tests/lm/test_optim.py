@@ -29,6 +29,29 @@ def test_newton_schulz_in_bf16_flattens_the_spectrum_too_and_returns_bf16():
     assert (out.float() - orthogonalized(update)).abs().max() < 0.05  # bf16 rounding, not another result
 
 
+def _textbook_newton_schulz(update: torch.Tensor) -> torch.Tensor:
+    """Five quintic iterations as the reference implementation writes them, in fp64."""
+    x = update.double()
+    x = x.mT if x.size(-2) > x.size(-1) else x
+    x = x / (x.norm(dim=(-2, -1), keepdim=True) + 1e-7)
+    for _ in range(5):
+        gram = x @ x.mT
+        x = 3.4445 * x + (-4.7750 * gram + 2.0315 * gram @ gram) @ x
+    return x.mT if update.size(-2) > update.size(-1) else x
+
+
+@pytest.mark.parametrize("shape", [(32, 128), (128, 32), (4, 24, 96), (4, 32, 48), (32, 32)])
+def test_newton_schulz_is_the_textbook_map_through_the_gram_matrix_or_not(shape):
+    """Wide matrices (at least 2:1) iterate on their Gram matrix, the others directly: the same map either way."""
+    generator = torch.Generator().manual_seed(0)
+    rank = 4  # nearly low-rank, as a momentum update is: where the Gram matrix's rounding shows most
+    low = torch.randn(*shape[:-1], rank, generator=generator) @ torch.randn(*shape[:-2], rank, shape[-1], generator=generator)
+    update = low + 0.01 * torch.randn(*shape, generator=generator)
+    ours, textbook = orthogonalized(update), _textbook_newton_schulz(update)
+    assert ours.dtype == torch.float32
+    assert ((ours.double() - textbook).norm() / textbook.norm()) < 1e-3
+
+
 def test_a_batch_of_matrices_is_orthogonalized_each_as_alone():
     batch = torch.randn(3, 48, 16, generator=torch.Generator().manual_seed(0))
     torch.testing.assert_close(orthogonalized(batch), torch.stack([orthogonalized(m) for m in batch]))
