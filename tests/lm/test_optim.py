@@ -45,7 +45,8 @@ def test_newton_schulz_is_the_textbook_map_through_the_gram_matrix_or_not(shape)
     """Wide matrices (at least 2:1) iterate on their Gram matrix, the others directly: the same map either way."""
     generator = torch.Generator().manual_seed(0)
     rank = 4  # nearly low-rank, as a momentum update is: where the Gram matrix's rounding shows most
-    low = torch.randn(*shape[:-1], rank, generator=generator) @ torch.randn(*shape[:-2], rank, shape[-1], generator=generator)
+    low = (torch.randn(*shape[:-1], rank, generator=generator)
+           @ torch.randn(*shape[:-2], rank, shape[-1], generator=generator))
     update = low + 0.01 * torch.randn(*shape, generator=generator)
     ours, textbook = orthogonalized(update), _textbook_newton_schulz(update)
     assert ours.dtype == torch.float32

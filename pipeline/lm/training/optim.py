@@ -59,9 +59,10 @@ def _through_gram(x: torch.Tensor, steps: int, addmm) -> torch.Tensor:
     G = x x^T. Each iteration multiplies x on the left by P = a I + b G + c G^2, so the result is Q x with Q the
     product of the P's, and the next G is P G P = P^2 G (P is a polynomial in G: they commute). The same map in
     2m^2 n + 17m^3 multiply-adds against 10m^2 n + 5m^3 directly: 1.8x fewer at n = 4m (the MLP's matrices of
-    the CPU default), more than directly below n = 1.5m. The rounding differs: measured against fp64, 1e-6 (random matrices) to
-    1.4e-4 (nearly low-rank ones, as momentum is) relative in fp32, against 1e-6 and 2e-5 directly; bf16 would
-    lose far more (the Gram matrix squares the condition number), so bf16 iterations go directly."""
+    the CPU default); below n = 1.5m the direct iterations are cheaper, hence the 2:1 threshold. The rounding
+    differs: against fp64, 1e-6 (random matrices) to 1.4e-4 (nearly low-rank ones, as momentum is) relative in
+    fp32, against 1e-6 and 2e-5 directly; bf16 would lose far more (the Gram matrix squares the condition
+    number), so bf16 iterations go directly."""
     a, b, c = _NS_COEFFICIENTS
     gram = x @ x.mT
     scaled_eye = torch.eye(gram.size(-1), dtype=gram.dtype).mul_(a).expand_as(gram)
