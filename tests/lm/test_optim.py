@@ -56,6 +56,13 @@ def test_newton_schulz_is_the_textbook_map_through_the_gram_matrix_or_not(shape)
 def test_a_batch_of_matrices_is_orthogonalized_each_as_alone():
     batch = torch.randn(3, 48, 16, generator=torch.Generator().manual_seed(0))
     torch.testing.assert_close(orthogonalized(batch), torch.stack([orthogonalized(m) for m in batch]))
+    nested = batch.reshape(3, 1, 48, 16)  # more than one batch dimension: the same numbers
+    torch.testing.assert_close(orthogonalized(nested), orthogonalized(batch).reshape(3, 1, 48, 16))
+
+
+def test_no_iterations_leave_the_normalised_update():
+    update = torch.randn(8, 32, generator=torch.Generator().manual_seed(0))
+    torch.testing.assert_close(orthogonalized(update, steps=0), update / (update.norm() + 1e-7))
 
 
 @pytest.fixture(scope="module")

@@ -37,6 +37,8 @@ def orthogonalized(update: torch.Tensor, steps: int = 5, dtype: torch.dtype = to
     """The update matrix (or a batch of them, ``(..., rows, columns)``) with its singular values pushed towards 1
     (Newton-Schulz), computed in ``dtype``. A matrix at least twice as wide as tall (or tall as wide) goes through
     its Gram matrix (`_through_gram`) in fp32 and wider types."""
+    if update.ndim > 3:  # one batch dimension for the batched matmuls
+        return orthogonalized(update.flatten(0, -3), steps, dtype).unflatten(0, update.shape[:-2])
     a, b, c = _NS_COEFFICIENTS
     x = update.to(dtype)
     tall = x.size(-2) > x.size(-1)
@@ -44,7 +46,7 @@ def orthogonalized(update: torch.Tensor, steps: int = 5, dtype: torch.dtype = to
         x = x.mT
     x = x / (torch.linalg.vector_norm(x, dim=(-2, -1), keepdim=True) + 1e-7)
     addmm = torch.baddbmm if x.ndim == 3 else torch.addmm
-    if x.size(-1) >= 2 * x.size(-2) and torch.finfo(dtype).bits >= 32:
+    if steps > 0 and x.size(-1) >= 2 * x.size(-2) and torch.finfo(dtype).bits >= 32:
         x = _through_gram(x, steps, addmm)
     else:
         for _ in range(steps):
@@ -60,12 +62,12 @@ def _through_gram(x: torch.Tensor, steps: int, addmm) -> torch.Tensor:
     product of the P's, and the next G is P G P = P^2 G (P is a polynomial in G: they commute). The same map in
     2m^2 n + 17m^3 multiply-adds against 10m^2 n + 5m^3 directly: 1.8x fewer at n = 4m (the MLP's matrices of
     the CPU default); below n = 1.5m the direct iterations are cheaper, hence the 2:1 threshold. The rounding
-    differs: against fp64, 1e-6 (random matrices) to 1.4e-4 (nearly low-rank ones, as momentum is) relative in
-    fp32, against 1e-6 and 2e-5 directly; bf16 would lose far more (the Gram matrix squares the condition
+    differs: against fp64, 1e-6 relative on random matrices and 1e-4 to 4e-4 on nearly low-rank ones (as momentum
+    is) in fp32, against 1e-6 and 2e-5 directly; bf16 would lose far more (the Gram matrix squares the condition
     number), so bf16 iterations go directly."""
     a, b, c = _NS_COEFFICIENTS
     gram = x @ x.mT
-    scaled_eye = torch.eye(gram.size(-1), dtype=gram.dtype).mul_(a).expand_as(gram)
+    scaled_eye = torch.eye(gram.size(-1), dtype=gram.dtype, device=gram.device).mul_(a).expand_as(gram)
     product = None
     for i in range(steps):
         p = addmm(torch.add(scaled_eye, gram, alpha=b), gram, gram, alpha=c)  # a I + b G + c G^2
