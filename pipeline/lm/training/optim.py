@@ -135,7 +135,7 @@ class MuonAdamW(torch.optim.Optimizer):
             if "step" not in self.state[p]:
                 self.state[p].update(step=0, exp_avg=torch.zeros_like(p), exp_avg_sq=torch.zeros_like(p))
             self.state[p]["step"] += 1
-        (beta1, beta2) = group["betas"]
+        beta1, beta2 = group["betas"]
         by_step: dict[int, list[torch.Tensor]] = {}  # parameters stepped as often share one bias correction
         for p in params:
             by_step.setdefault(self.state[p]["step"], []).append(p)
