@@ -84,6 +84,23 @@ def coverage_text(frame: int, newlines: str = "own") -> str:
     return cells + " " + " ".join(str(n) for n in numbers) + " " + ",".join(str(n) for n in numbers) + newline
 
 
+# Printable ASCII, tabs and newlines: where Python's regex engine and the tokenizer's (Oniguruma) read the pattern's
+# classes (\d, \s, letters) alike, so `re.findall` gives the pre-tokenizer's pieces (and no gaps between them).
+_PLAIN = re.compile(r"[\x20-\x7e\t\n]*")
+
+
+def _all_pieces(texts: Iterable[str], numbers: str, newlines: str) -> set[str]:
+    """The distinct pieces of ``texts``: plain texts through Python's regex (the CPU default's 100,000 training
+    texts: 0.6 s instead of 7 s through the pre-tokenizer), any other through the tokenizer's own pre-tokenizer."""
+    regex, splitter, found = _PIECE_RES[numbers, newlines], _pre_tokenizer(numbers, newlines), set()
+    for text in texts:
+        if _PLAIN.fullmatch(text):
+            found.update(regex.findall(text))
+        else:
+            found.update(piece for piece, _ in splitter.pre_tokenize_str(text))
+    return found
+
+
 def build_word_tokenizer(texts: Iterable[str], frame: int = 20, numbers: str = "whole",
                          newlines: str = "own") -> PreTrainedTokenizerFast:
     """A deterministic word-level tokenizer whose vocabulary covers ``texts`` and all frame coordinates;
@@ -92,16 +109,13 @@ def build_word_tokenizer(texts: Iterable[str], frame: int = 20, numbers: str = "
         raise ValueError(f"numbers={numbers!r}; allowed: {', '.join(NUMBERS)}")
     if newlines not in NEWLINES:
         raise ValueError(f"newlines={newlines!r}; allowed: {', '.join(NEWLINES)}")
-    vocab_pieces: set[str] = set()
-    splitter = _pre_tokenizer(numbers, newlines)
     digits = "0123456789" if numbers == "digits" else ""   # every number is made of known pieces
-    for text in [coverage_text(frame, newlines), digits, *texts]:
-        vocab_pieces.update(piece for piece, _ in splitter.pre_tokenize_str(text))
+    vocab_pieces = _all_pieces({coverage_text(frame, newlines), digits, *texts}, numbers, newlines)
     vocab = {token: i for i, token in enumerate(SPECIAL_TOKENS)}
     for piece in sorted(vocab_pieces - set(SPECIAL_TOKENS)):
         vocab[piece] = len(vocab)
     core = Tokenizer(models.WordLevel(vocab=vocab, unk_token=UNK))
-    core.pre_tokenizer = splitter
+    core.pre_tokenizer = _pre_tokenizer(numbers, newlines)
     core.decoder = decoders.Fuse()
     core.add_special_tokens(list(SPECIAL_TOKENS))
     return PreTrainedTokenizerFast(

@@ -12,7 +12,8 @@ from transformers import PreTrainedTokenizerFast
 from conftest import ROOT
 from fastchat_reference import paper_conversations, paper_format, render_conversation
 from pipeline.lm.chat import (
-    IGNORE_INDEX, UNTRAINED, ChatFormat, encode_conversation, encode_followup, encode_prompt, stop_ids,
+    IGNORE_INDEX, UNTRAINED, ChatFormat, encode_conversation, encode_conversations, encode_followup, encode_prompt,
+    stop_ids,
     turn_end_ids,
 )
 
@@ -53,6 +54,25 @@ def test_ids_are_the_rendered_text_and_the_loss_covers_gpt_texts_and_their_ends_
     # Nothing of the human turns, the [INST]/[/INST] markers or the first BOS is a target.
     first_gpt = tokenizer.decode(ids[: targets[0][0]])
     assert first_gpt == "<|begin_of_text|>[INST] Rules here.[/INST]\n"
+
+
+class _OneByOne:
+    """A tokenizer with ``encode`` alone (no Rust backend to batch with)."""
+
+    def __init__(self, tokenizer):
+        self.tokenizer = tokenizer
+
+    def encode(self, text, add_special_tokens=True):
+        return self.tokenizer.encode(text, add_special_tokens=add_special_tokens)
+
+
+def test_conversations_encoded_together_are_each_encoded_alone(tokenizer):
+    fmt = paper_format()
+    conversations = [TURNS, TURNS[:2], [*TURNS[:3], {**TURNS[3], UNTRAINED: [[0, 1]]}], [{"from": "human", "value": ""}]]
+    together = encode_conversations(tokenizer, fmt, conversations)
+    assert together == encode_conversations(_OneByOne(tokenizer), fmt, conversations)
+    assert together == [encode_conversation(_OneByOne(tokenizer), fmt, turns) for turns in conversations]
+    assert tokenizer.decode(together[0][0]) == render_conversation(fmt, TURNS)
 
 
 def test_untrained_spans_of_a_gpt_turn_keep_its_ids_and_drop_their_targets(tokenizer):
@@ -111,8 +131,7 @@ def test_the_paper_template_gives_the_papers_ids_and_loss_mask_with_the_real_tok
     fmt = paper_format()
     conversations = paper_conversations()
     assert len(conversations) == 3 * 2 * (2 * 2 * 14 + 2)  # 14 variants in both modes, DFS reachable only
-    for turns in conversations:
-        ids, labels = encode_conversation(llama3_tokenizer, fmt, turns)
+    for turns, (ids, labels) in zip(conversations, encode_conversations(llama3_tokenizer, fmt, conversations)):
         assert (ids, labels) == fastchat_ids_and_labels(llama3_tokenizer, turns, max_length=8192)
         # ... and they are the rendered string tokenized at once, as the paper's code does.
         assert ids == llama3_tokenizer(render_conversation(fmt, turns), add_special_tokens=False).input_ids

@@ -7,7 +7,7 @@ from fastchat_reference import render_conversation
 from pipeline.lm.chat import WORD_LEVEL_FORMAT, encode_conversation
 from pipeline.core.generators import GeneratorConfig, generate_worlds
 from pipeline.core.texts import conversation
-from pipeline.lm.tokenizer import build_word_tokenizer, count_pieces, pieces
+from pipeline.lm.tokenizer import SPECIAL_TOKENS, build_word_tokenizer, count_pieces, coverage_text, pieces
 
 WORLDS = generate_worlds(30, 0, GeneratorConfig(size_x=(2, 5), size_y=(2, 5), frame=8))
 TEXTS = [turn["value"] for w in WORLDS for turn in conversation(w, "fwd", "marking-deadend", "reachable")]
@@ -55,6 +55,15 @@ def test_joined_newlines_end_a_line_with_its_last_piece_and_keep_every_text():
     # The default cut is unchanged by the switch's existence: a newline is its own token.
     assert build_word_tokenizer(TEXTS, frame=8, newlines="own").get_vocab() == TOKENIZER.get_vocab()
     assert "(3, 4)\n" not in TOKENIZER.get_vocab()
+
+
+def test_the_vocabulary_is_the_pre_tokenizers_pieces_of_any_text():
+    # Plain texts take Python's regex, others the tokenizer's own pre-tokenizer: both give its pieces.
+    texts = [*TEXTS[:40], "h\u00e9llo (1, 2)\u00a0x\x1c y\u0663 12", "tab\there\r\nz", "   ", ""]
+    for numbers, newlines in (("whole", "own"), ("digits", "composed")):
+        vocab = build_word_tokenizer(texts, frame=8, numbers=numbers, newlines=newlines).get_vocab()
+        every = [coverage_text(8, newlines), "0123456789" if numbers == "digits" else "", *texts]
+        assert set(vocab) == set(SPECIAL_TOKENS) | {piece for text in every for piece in pieces(text, numbers, newlines)}
 
 
 def test_every_text_round_trips_without_unknown_tokens():
