@@ -360,20 +360,26 @@ def test_the_compile_scope_reaches_accelerate_and_does_not_outlive_the_trainer(
 @pytest.mark.skipif(cxx_compiler() is None or not PYTHON_H.is_file(), reason="torch.compile on a CPU needs a C++ "
                     "compiler and the Python headers")
 def test_regional_compile_trains_what_eager_trains_and_saves_plain_weights(tokenizer, conversations, tmp_path):
-    # One batch width (pad_to_multiple_of covers every length): one compiled graph, so this stays short.
-    settings = dict(max_steps=3, pad_to_multiple_of=256, **QUIET)
-    eager = finetune(tiny_model(tokenizer), tokenizer, WORD_LEVEL_FORMAT, conversations, TrainSettings(**settings),
+    # A whole epoch of 46 conversations in batches of 4: batches of several widths, then one short batch of 2.
+    data, steps = conversations[:46], 12
+    settings = dict(max_steps=steps, pad_to_multiple_of=1, **QUIET)
+    eager = finetune(tiny_model(tokenizer), tokenizer, WORD_LEVEL_FORMAT, data, TrainSettings(**settings),
                      tmp_path / "eager")
-    model, seen = tiny_model(tokenizer), []
+    model, seen, shapes = tiny_model(tokenizer), [], set()
+    model.model.embed_tokens.register_forward_hook(lambda module, args, out: shapes.add(tuple(out.shape[:2])))
+    graphs = torch._dynamo.utils.counters["stats"]["unique_graphs"]
 
     class Compiled(TrainerCallback):
         def on_step_end(self, args, state, control, **kwargs):
             seen.append([layer._compiled_call_impl is not None for layer in model.model.layers])
 
-    compiled = finetune(model, tokenizer, WORD_LEVEL_FORMAT, conversations,
+    compiled = finetune(model, tokenizer, WORD_LEVEL_FORMAT, data,
                         TrainSettings(torch_compile="regional", **settings), tmp_path / "compiled",
                         callbacks=[Compiled()])
-    assert seen == [[True, True]] * 3  # each decoder layer compiled while training ...
+    assert seen == [[True, True]] * steps  # each decoder layer compiled while training ...
+    # ... once, for every width and batch size (a recompile cost the default job 15 s, and 20 s at its short batch)
+    assert len({width for _, width in shapes}) > 3 and {size for size, _ in shapes} == {4, 2}
+    assert torch._dynamo.utils.counters["stats"]["unique_graphs"] - graphs == 1
     assert all(layer._compiled_call_impl is None for layer in model.model.layers)  # ... and eager after
     assert compiled.final_loss == pytest.approx(eager.final_loss, rel=1e-3)
     a, b = load_model(eager.model_dir).state_dict(), load_model(compiled.model_dir).state_dict()
