@@ -100,11 +100,32 @@ def _value_pieces(turn: dict) -> list[tuple[str, bool]]:
 _BATCH = 4096
 
 
-def _encode_all(tokenizer: TextTokenizer, texts: Sequence[str]) -> list[list[int]]:
-    """`_encode` of each text. A tokenizer with a Rust backend (transformers' fast tokenizers:
-    ``backend_tokenizer``) encodes them in batches, in parallel and without a Python call a text: the ids are
-    the backend's, which is what ``encode`` returns too."""
+def _plain_backend(tokenizer: TextTokenizer):
+    """The Rust tokenizer behind a transformers fast tokenizer whose ``encode`` is the backend's alone (its class
+    overrides no encoding method), set as ``encode`` sets it before each call: no padding, no truncation (an
+    earlier call, or the tokenizer's file, may have left either on the backend) and special tokens split as the
+    tokenizer says. None for any other tokenizer."""
     backend = getattr(tokenizer, "backend_tokenizer", None)
+    if backend is None:
+        return None
+    from transformers.tokenization_utils_tokenizers import TokenizersBackend
+
+    cls = type(tokenizer)
+    if not isinstance(tokenizer, TokenizersBackend) or any(
+            getattr(cls, name) is not getattr(TokenizersBackend, name) for name in ("encode", "_encode_plus")):
+        return None
+    if backend.truncation is not None:
+        backend.no_truncation()
+    if backend.padding is not None:
+        backend.no_padding()
+    backend.encode_special_tokens = bool(getattr(tokenizer, "split_special_tokens", False))
+    return backend
+
+
+def _encode_all(tokenizer: TextTokenizer, texts: Sequence[str]) -> list[list[int]]:
+    """`_encode` of each text. A transformers fast tokenizer (`_plain_backend`) has its Rust backend encode them
+    in batches, in parallel and without a Python call a text: the ids ``encode`` returns."""
+    backend = _plain_backend(tokenizer)
     if backend is None:
         return [_encode(tokenizer, text) for text in texts]
     nonempty = [text for text in texts if text]

@@ -73,6 +73,9 @@ def test_conversations_encoded_together_are_each_encoded_alone(tokenizer):
     assert together == encode_conversations(_OneByOne(tokenizer), fmt, conversations)
     assert together == [encode_conversation(_OneByOne(tokenizer), fmt, turns) for turns in conversations]
     assert tokenizer.decode(together[0][0]) == render_conversation(fmt, TURNS)
+    # What an earlier call left on the Rust backend (padding, truncation) does not reach the batches.
+    tokenizer(["a", "a b c"], padding=True, truncation=True, max_length=2)
+    assert encode_conversations(tokenizer, fmt, conversations) == together
 
 
 def test_untrained_spans_of_a_gpt_turn_keep_its_ids_and_drop_their_targets(tokenizer):
