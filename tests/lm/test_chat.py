@@ -13,8 +13,7 @@ from conftest import ROOT
 from fastchat_reference import paper_conversations, paper_format, render_conversation
 from pipeline.lm.chat import (
     IGNORE_INDEX, UNTRAINED, ChatFormat, encode_conversation, encode_conversations, encode_followup, encode_prompt,
-    stop_ids,
-    turn_end_ids,
+    stop_ids, turn_end_ids,
 )
 
 SPECIAL = ("<|begin_of_text|>", "<|end_of_text|>", "[INST]", "[/INST]")
@@ -68,7 +67,8 @@ class _OneByOne:
 
 def test_conversations_encoded_together_are_each_encoded_alone(tokenizer):
     fmt = paper_format()
-    conversations = [TURNS, TURNS[:2], [*TURNS[:3], {**TURNS[3], UNTRAINED: [[0, 1]]}], [{"from": "human", "value": ""}]]
+    conversations = [TURNS, TURNS[:2], [*TURNS[:3], {**TURNS[3], UNTRAINED: [[0, 1]]}],
+                     [{"from": "human", "value": ""}]]
     together = encode_conversations(tokenizer, fmt, conversations)
     assert together == encode_conversations(_OneByOne(tokenizer), fmt, conversations)
     assert together == [encode_conversation(_OneByOne(tokenizer), fmt, turns) for turns in conversations]

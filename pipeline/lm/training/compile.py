@@ -111,9 +111,9 @@ def compiled_blocks(model: torch.nn.Module, torch_compile: str):
     for every batch width and size above 1 (torch specializes a dimension of 1). Compiled for the first batch's
     shapes, it compiled again at the second width and a third time at an epoch's one short batch (15 s and 20 s
     of the CPU default's job; its steps measured as fast either way). accelerate's regional compilation also
-    compiles the small modules around the blocks, each apart; through Trainer that ran slower than eager here. Dynamo's caches
-    are reset afterwards, so the next job in the same process starts under no guards or recompile counts of
-    this one (inductor's on-disk cache keeps the compiled kernels).
+    compiles the small modules around the blocks, each apart; through Trainer that ran slower than eager here.
+    Dynamo's caches are reset afterwards, so the next job in the same process starts under no guards or
+    recompile counts of this one (inductor's on-disk cache keeps the compiled kernels).
     """
     if torch_compile != "regional":
         yield
