@@ -368,10 +368,12 @@ def test_regional_compile_trains_what_eager_trains_and_saves_plain_weights(token
     model, seen, shapes = tiny_model(tokenizer), [], set()
     model.model.embed_tokens.register_forward_hook(lambda module, args, out: shapes.add(tuple(out.shape[:2])))
     graphs = torch._dynamo.utils.counters["stats"]["unique_graphs"]
+    attempts = set()  # dynamo's timed compile attempts (its reset at the end clears them)
 
     class Compiled(TrainerCallback):
         def on_step_end(self, args, state, control, **kwargs):
             seen.append([layer._compiled_call_impl is not None for layer in model.model.layers])
+            attempts.update(k for k in torch._dynamo.utils.compilation_time_metrics if k.startswith("compile_attempt"))
 
     compiled = finetune(model, tokenizer, WORD_LEVEL_FORMAT, data,
                         TrainSettings(torch_compile="regional", **settings), tmp_path / "compiled",
@@ -380,6 +382,8 @@ def test_regional_compile_trains_what_eager_trains_and_saves_plain_weights(token
     # ... once, for every width and batch size (a recompile cost the default job 15 s, and 20 s at its short batch)
     assert len({width for _, width in shapes}) > 3 and {size for size, _ in shapes} == {4, 2}
     assert torch._dynamo.utils.counters["stats"]["unique_graphs"] - graphs == 1
+    # ... traced in one attempt: a float traced as a symbol made dynamo start over (3 s of each cold compile)
+    assert attempts == {"compile_attempt_0"}
     assert all(layer._compiled_call_impl is None for layer in model.model.layers)  # ... and eager after
     assert compiled.final_loss == pytest.approx(eager.final_loss, rel=1e-3)
     a, b = load_model(eager.model_dir).state_dict(), load_model(compiled.model_dir).state_dict()

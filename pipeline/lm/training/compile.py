@@ -112,6 +112,8 @@ def compiled_blocks(model: torch.nn.Module, torch_compile: str):
     shapes, it compiled again at the second width and a third time at an epoch's one short batch (15 s and 20 s
     of the CPU default's job; its steps measured as fast either way). accelerate's regional compilation also
     compiles the small modules around the blocks, each apart; through Trainer that ran slower than eager here.
+    Python floats are traced as constants (``specialize_float``): traced as symbols, one of the layer's floats
+    made dynamo start the trace over, about 3 s of every cold compile, for the same graph and the same weights.
     Dynamo's caches are reset afterwards, so the next job in the same process starts under no guards or
     recompile counts of this one (inductor's on-disk cache keeps the compiled kernels).
     """
@@ -123,7 +125,8 @@ def compiled_blocks(model: torch.nn.Module, torch_compile: str):
     for block in blocks:
         block.compile(dynamic=True)
     try:
-        yield
+        with torch._dynamo.config.patch(specialize_float=True):
+            yield
     finally:
         for block in blocks:
             block._compiled_call_impl = None  # what nn.Module.compile set: calls go to the eager forward again
