@@ -60,17 +60,23 @@ _PIECE_RES = {(numbers, newlines): re.compile(piece_pattern(numbers, newlines))
               for numbers in NUMBERS for newlines in NEWLINES}
 
 
-@lru_cache(maxsize=1024)
-def piece_set(text: str, numbers: str = "whole", newlines: str = "own") -> frozenset[str]:
-    """The distinct pieces of ``text`` (the words a word-level model must have trained to read or write it)."""
-    return frozenset(_PIECE_RES[numbers, newlines].findall(text))
-
-
 # Cached: the instruction turn, the longest, repeats in every conversation.
 @lru_cache(maxsize=1024)
+def piece_census(text: str, numbers: str = "whole", newlines: str = "own") -> tuple[int, frozenset[str]]:
+    """How many tokens ``text`` becomes and which distinct pieces it holds, from one pass of the tokenizer's own
+    pattern (no Encoding built)."""
+    found = _PIECE_RES[numbers, newlines].findall(text)
+    return len(found), frozenset(found)
+
+
+def piece_set(text: str, numbers: str = "whole", newlines: str = "own") -> frozenset[str]:
+    """The distinct pieces of ``text`` (the words a word-level model must have trained to read or write it)."""
+    return piece_census(text, numbers, newlines)[1]
+
+
 def count_pieces(text: str, numbers: str = "whole", newlines: str = "own") -> int:
     """How many tokens ``text`` becomes (the tokenizer's own pattern, without building an Encoding)."""
-    return len(_PIECE_RES[numbers, newlines].findall(text))
+    return piece_census(text, numbers, newlines)[0]
 
 
 def coverage_text(frame: int, newlines: str = "own") -> str:

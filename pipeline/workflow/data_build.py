@@ -22,7 +22,7 @@ from pipeline.core.texts import DEFAULT_PROMPT, conversation, edge_label_spans, 
 from pipeline.core.variants import BY_NAME, text_direction
 from pipeline.core.world import World, load_worlds, save_worlds
 from pipeline.lm.chat import UNTRAINED
-from pipeline.lm.tokenizer import count_pieces, piece_set
+from pipeline.lm.tokenizer import piece_census, piece_set
 from pipeline.workflow.paper_data import PAPER_WORD, ResolvedFile, file_sha256, resolve
 from pipeline.workflow.steps import StepRun
 from pipeline.workflow.tracking import log_dataset, log_settings
@@ -261,11 +261,13 @@ def write_dataset(out_dir: str | Path, train: list[World], test: list[World], sp
 
     def measured(rows: Iterable[dict]) -> Iterable[dict]:
         for row in rows:
-            token_lengths.append(sum(count_pieces(turn["value"], spec.numbers, spec.newlines) + 2
-                                     for turn in row["conversations"]))
+            tokens = 0
             for turn in row["conversations"]:
-                train_words.update(piece_set(turn["value"], spec.numbers, spec.newlines))
+                count, found = piece_census(turn["value"], spec.numbers, spec.newlines)
+                tokens += count + 2
+                train_words.update(found)
                 untrained_labels[0] += len(turn.get(UNTRAINED, ()))
+            token_lengths.append(tokens)
             yield row
 
     def words_of(rows: Iterable[dict]) -> Iterable[dict]:
