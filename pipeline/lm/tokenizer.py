@@ -74,11 +74,6 @@ def piece_set(text: str, numbers: str = "whole", newlines: str = "own") -> froze
     return piece_census(text, numbers, newlines)[1]
 
 
-def count_pieces(text: str, numbers: str = "whole", newlines: str = "own") -> int:
-    """How many tokens ``text`` becomes (the tokenizer's own pattern, without building an Encoding)."""
-    return piece_census(text, numbers, newlines)[0]
-
-
 def coverage_text(frame: int, newlines: str = "own") -> str:
     """Every cell (with newlines joined, also ending a line) and every number a coordinate can take in a frame
     (numbers with and without a space); with newlines `composed`, also a newline alone (the row every joined

@@ -7,7 +7,7 @@ from fastchat_reference import render_conversation
 from pipeline.lm.chat import WORD_LEVEL_FORMAT, encode_conversation
 from pipeline.core.generators import GeneratorConfig, generate_worlds
 from pipeline.core.texts import conversation
-from pipeline.lm.tokenizer import SPECIAL_TOKENS, build_word_tokenizer, count_pieces, coverage_text, pieces
+from pipeline.lm.tokenizer import SPECIAL_TOKENS, build_word_tokenizer, coverage_text, piece_census, pieces
 
 WORLDS = generate_worlds(30, 0, GeneratorConfig(size_x=(2, 5), size_y=(2, 5), frame=8))
 TEXTS = [turn["value"] for w in WORLDS for turn in conversation(w, "fwd", "marking-deadend", "reachable")]
@@ -18,7 +18,8 @@ def test_coordinates_are_single_pieces_and_counts_agree():
     text = "Current:\n(3, -1)\nPossible:\n(0, 1)\nup. The wall is at (1, 1), and (2, 2)."
     assert pieces(text)[:4] == ["Current", ":", "\n", "(3, -1)"]
     assert "(1, 1)" in pieces(text) and "(2, 2)" in pieces(text)
-    assert count_pieces(text) == len(pieces(text)) == len(TOKENIZER.encode(text, add_special_tokens=False))
+    assert piece_census(text)[0] == len(pieces(text)) == len(TOKENIZER.encode(text, add_special_tokens=False))
+    assert piece_census(text)[1] == set(pieces(text))
 
 
 def test_digits_cut_a_number_into_its_digits_with_the_space_apart():
@@ -32,7 +33,7 @@ def test_digits_cut_a_number_into_its_digits_with_the_space_apart():
     assert tokenizer.unk_token_id not in ids and tokenizer.decode(ids) == "Step 98:"
     for text in TEXTS[:50]:
         ids = tokenizer.encode(text, add_special_tokens=False)
-        assert tokenizer.decode(ids) == text and len(ids) == count_pieces(text, "digits")
+        assert tokenizer.decode(ids) == text and len(ids) == piece_census(text, "digits")[0]
 
 
 def test_joined_newlines_end_a_line_with_its_last_piece_and_keep_every_text():
@@ -45,8 +46,8 @@ def test_joined_newlines_end_a_line_with_its_last_piece_and_keep_every_text():
     for text in TEXTS:
         ids = tokenizer.encode(text, add_special_tokens=False)
         assert tokenizer.unk_token_id not in ids and tokenizer.decode(ids) == text
-        assert len(ids) == count_pieces(text, "digits", "joined")
-        joined, own = joined + len(ids), own + count_pieces(text, "digits")
+        assert len(ids) == piece_census(text, "digits", "joined")[0]
+        joined, own = joined + len(ids), own + piece_census(text, "digits")[0]
     assert joined < 0.8 * own   # the same texts in fewer tokens
     # Both words of every frame cell are known, the one that ends a line too, even where no text has it.
     for cell in ("(8, -1)", "(-1, 8)", "(7, 7)"):

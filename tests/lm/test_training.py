@@ -367,6 +367,7 @@ def test_regional_compile_trains_what_eager_trains_and_saves_plain_weights(token
                      tmp_path / "eager")
     model, seen, shapes = tiny_model(tokenizer), [], set()
     model.model.embed_tokens.register_forward_hook(lambda module, args, out: shapes.add(tuple(out.shape[:2])))
+    torch._dynamo.reset()  # no compile attempts recorded by an earlier test: a fresh process's dynamo
     graphs = torch._dynamo.utils.counters["stats"]["unique_graphs"]
     attempts = set()  # dynamo's timed compile attempts (its reset at the end clears them)
 
