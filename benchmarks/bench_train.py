@@ -29,6 +29,8 @@ conversations through `pipeline.lm.training.trainer.finetune`, with the default 
 - ``default, newlines <own|joined|composed>``: the same conversations cut by the tokenizer with another
   ``model.newlines`` (``--other-newlines``; a newline its own token, or joined to the line's last word, with the
   joined words' rows composed or not): fewer tokens a conversation, so compare conversations/s.
+- ``default, whole batches``: the default with ``batch_threads`` 1 (when the default cuts each batch into parts
+  computed side by side by Python threads): what the parts buy.
 
 Each run prints two rates: over all its steps (compiling included), and in steady state: the median rate of
 the optimizer steps themselves (forward, backward and update: no batch loading or logging) after the first
@@ -175,7 +177,7 @@ def main() -> None:
                         help="the other-newlines run's cut (default: joined, or own if the model joins them)")
     parser.add_argument("--only", choices=("padded-fp32", "packed-fp32", "packed-bf16", "default", "when-faster",
                                            "default, paper prompt", "other-optimizer", "muon-bf16",
-                                           "other-attention", "plain-positions", "other-newlines"),
+                                           "other-attention", "plain-positions", "other-newlines", "whole-batches"),
                         action="append", help="run only these (repeatable)")
     args = parser.parse_args()
     if not 0 <= args.skip < args.steps:
@@ -263,9 +265,15 @@ def main() -> None:
         runs[newlines_run] = runs[default]
         stretch[newlines_run] = stretch[default]
     run_newlines = {newlines_run: other_newlines}  # name: model.newlines where it is not the model yaml's
+    # What cutting each batch into parts computed side by side buys (train.batch_threads): the default uncut.
+    parts = {name: train_cfg.batch_threads for name in runs if name.startswith("default")}
+    whole_batches = f"{default}, whole batches"
+    if scope != "none" and train_cfg.batch_threads > 1:
+        runs[whole_batches] = runs[default]
+        parts[whole_batches] = 1
     selected = {"default": default, "when-faster": when_faster, "other-optimizer": other_optimizer,
                 "muon-bf16": muon_other, "other-attention": attention_run, "plain-positions": plain_positions,
-                "other-newlines": newlines_run}
+                "other-newlines": newlines_run, "whole-batches": whole_batches}
     wanted = {selected.get(name, name) for name in args.only or runs}
     rounds: dict[str, list[tuple[float, float]]] = {}  # name: (overall, steady) real tokens/s of each round
     per_token: dict[str, float] = {}  # name: useful training FLOPs per real token of its conversations
@@ -291,7 +299,7 @@ def main() -> None:
             pad_to_multiple_of=train_cfg.pad_to_multiple_of,
             report_to=(), logging_steps=args.steps, save_steps=10 * args.steps, torch_threads=args.threads,
             torch_compile=compile_scope, optimizer=optimizer, muon_bf16=muon_bf16,
-            position_stretch=stretch.get(name, 1.0),
+            position_stretch=stretch.get(name, 1.0), batch_threads=parts.get(name, 1),
         )
         clock = StepClock()
         with tempfile.TemporaryDirectory() as out:

@@ -102,7 +102,7 @@ def dynamo_environment():
 
 
 @contextmanager
-def compiled_blocks(model: torch.nn.Module, torch_compile: str):
+def compiled_blocks(model: torch.nn.Module, torch_compile: str, release_gil: bool = False):
     """With ``regional``, compile every block of the model's repeated blocks (a decoder's layers: the
     ModuleLists whose members share a class) in place while the block runs, then put them back to eager.
 
@@ -115,7 +115,9 @@ def compiled_blocks(model: torch.nn.Module, torch_compile: str):
     Python floats are traced as constants (``specialize_float``): traced as symbols, one of the layer's floats
     made dynamo start the trace over, about 3 s of every cold compile, for the same graph and the same weights.
     Dynamo's caches are reset afterwards, so the next job in the same process starts under no guards or
-    recompile counts of this one (inductor's on-disk cache keeps the compiled kernels).
+    recompile counts of this one (inductor's on-disk cache keeps the compiled kernels). With ``release_gil``
+    the compiled graphs run from inductor's C++ wrapper, which releases Python's interpreter lock, so threads
+    computing parts of a batch overlap (`pipeline.lm.training.parts`); the kernels are the same.
     """
     if torch_compile != "regional":
         yield
@@ -123,7 +125,7 @@ def compiled_blocks(model: torch.nn.Module, torch_compile: str):
     blocks = [block for module in model.modules() if isinstance(module, torch.nn.ModuleList) and len(module) > 1
               and len({type(block) for block in module}) == 1 for block in module]
     for block in blocks:
-        block.compile(dynamic=True)
+        block.compile(dynamic=True, options={"cpp_wrapper": True} if release_gil else None)
     try:
         with torch._dynamo.config.patch(specialize_float=True):
             yield

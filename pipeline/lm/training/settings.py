@@ -17,6 +17,9 @@ SCHEDULERS = ("cosine", "linear", "constant", "constant_with_warmup", "cosine_wi
 # What becomes of a conversation longer than the context (model.max_length): left out, or cut to the context and
 # trained on the targets left (the paper's code: its tokenizer truncates).
 LONG_CONVERSATIONS = ("drop", "truncate")
+# The most parts a batch is cut into (`TrainSettings.batch_threads`): with more, the order in which their
+# gradients add up would vary between runs.
+MAX_BATCH_PARTS = 2
 # Trainer's AdamW, or Muon for the decoder layers' matrices with AdamW for the rest (pipeline/lm/training/optim.py).
 OPTIMIZERS = ("adamw", "muon")
 
@@ -84,6 +87,10 @@ class TrainSettings:
     # Training conversations see randomized, stretched position ids (`batches.stretched_positions`; 1: plain
     # positions); decoding keeps plain ones. Not in the paper (README, "Extrapolation").
     position_stretch: float = field(default=1.0, metadata={"hash_if_set": True})
+    # Each micro-batch cut into this many parts of consecutive rows, computed side by side by as many Python
+    # threads where the job has that many torch threads, else one after the other; the same training, rounded
+    # otherwise than the uncut batch (pipeline/lm/training/parts.py; README, Speed).
+    batch_threads: int = field(default=1, metadata={"hash_if_set": True})
 
     def __post_init__(self) -> None:
         self.report_to = [self.report_to] if isinstance(self.report_to, str) else list(self.report_to)
@@ -118,6 +125,11 @@ class TrainSettings:
                 "false unless optimizer=muon (it sets Muon's Newton-Schulz precision)")
         require(self.position_stretch >= 1, "position_stretch", self.position_stretch,
                 "a number >= 1 (1: plain positions)")
+        require(isinstance(self.batch_threads, int) and 1 <= self.batch_threads <= MAX_BATCH_PARTS,
+                "batch_threads", self.batch_threads, f"an integer from 1 to {MAX_BATCH_PARTS} (with more parts "
+                "the order their gradients add up in would vary between runs)")
+        require(self.batch_threads == 1 or self.accelerate_config is None, "batch_threads", self.batch_threads,
+                "1 with accelerate_config (distributed training splits batches its own way)")
         require(self.long_conversations in LONG_CONVERSATIONS, "long_conversations", self.long_conversations,
                 f"one of {', '.join(LONG_CONVERSATIONS)}")
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import logging
 import os
 import time
@@ -30,6 +31,7 @@ from pipeline.lm.training.batches import (
 )
 from pipeline.lm.training.compile import compiled_blocks, dynamo_environment, use_bf16
 from pipeline.lm.training.optim import build_optimizer
+from pipeline.lm.training.parts import PartThreads, split_rows
 from pipeline.lm.training.result import CHECKPOINTS_DIR, MODEL_DIR, TrainResult
 from pipeline.lm.training.settings import CompileMode, TrainSettings
 
@@ -68,20 +70,41 @@ class _Trainer(Trainer):
     keys in the checkpoint model loaded: ['lm_head.weight']`` (harmless: the head is re-tied).
 
     With ``position_stretch`` > 1 each training batch gets stretched position ids (`stretched_batch_positions`)
-    drawn from (seed, step, micro-batch within the step): a resumed run draws what the uninterrupted one drew."""
+    drawn from (seed, step, micro-batch within the step): a resumed run draws what the uninterrupted one drew.
+
+    With ``batch_parts`` > 1 each micro-batch is cut into that many parts of consecutive rows, computed side by
+    side on ``part_threads`` (`pipeline.lm.training.parts`), or one after the other where there are none; the
+    positions are drawn for the whole micro-batch first, so they are those of the uncut run."""
 
     position_stretch: float = 1.0
+    batch_parts: int = 1
+    part_threads: PartThreads | None = None
+    pad_to_multiple_of: int = 1
     _draw: tuple[int, int] = (-1, 0)   # (global step, micro-batches drawn in it)
 
-    def compute_loss(self, model, inputs, *args, **kwargs):
-        if self.position_stretch > 1 and model.training:
+    def _with_positions(self, model, inputs):
+        if self.position_stretch > 1 and model.training and "position_ids" not in inputs:
             step, drawn = self._draw
             drawn = drawn + 1 if step == self.state.global_step else 0
             self._draw = (self.state.global_step, drawn)
             key = (self.args.seed * 1_000_003 + self.state.global_step) * 1_009 + drawn
             inputs = {**inputs, "position_ids": stretched_batch_positions(inputs["attention_mask"],
                                                                           self.position_stretch, key)}
-        return super().compute_loss(model, inputs, *args, **kwargs)
+        return inputs
+
+    def compute_loss(self, model, inputs, *args, **kwargs):
+        return super().compute_loss(model, self._with_positions(model, inputs), *args, **kwargs)
+
+    def training_step(self, model, inputs, num_items_in_batch=None):
+        if self.batch_parts == 1:
+            return super().training_step(model, inputs, num_items_in_batch)
+        if num_items_in_batch is None:  # each part's loss must be a share of the whole batch's
+            raise ValueError("batch_threads > 1 needs a model that takes num_items_in_batch (a causal LM does)")
+        parts = split_rows(self._with_positions(model, inputs), self.batch_parts, self.pad_to_multiple_of)
+        step = super().training_step
+        calls = [functools.partial(step, model, part, num_items_in_batch) for part in parts]
+        losses = self.part_threads.run(calls) if self.part_threads else [call() for call in calls]
+        return torch.stack(losses).sum()
 
     def _issue_warnings_after_load(self, load_result) -> None:
         tied = getattr(self.model.config, "tie_word_embeddings", False)
@@ -271,6 +294,11 @@ def _finetune(model, tokenizer, fmt, conversations, settings, output_dir, seed, 
                         None),
         )
     trainer.position_stretch = settings.position_stretch
+    trainer.batch_parts, trainer.pad_to_multiple_of = settings.batch_threads, settings.pad_to_multiple_of
+    threads = torch.get_num_threads()
+    side_by_side = settings.batch_threads > 1 and threads >= settings.batch_threads
+    if side_by_side:
+        trainer.part_threads = PartThreads(settings.batch_threads, threads // settings.batch_threads)
     if any(isinstance(c, ProgressCallback) for c in trainer.callback_handler.callbacks):
         trainer.remove_callback(ProgressCallback)
         trainer.add_callback(BarProgress)
@@ -278,8 +306,14 @@ def _finetune(model, tokenizer, fmt, conversations, settings, output_dir, seed, 
     if resume:
         log.info("resuming from %s", resume)
     started = time.perf_counter()
-    with compiled_blocks(model, settings.torch_compile), composed_rows(trainer, tokenizer):
-        output = trainer.train(resume_from_checkpoint=resume)
+    try:
+        with compiled_blocks(model, settings.torch_compile, release_gil=side_by_side), \
+                composed_rows(trainer, tokenizer):
+            output = trainer.train(resume_from_checkpoint=resume)
+    finally:
+        if trainer.part_threads:
+            trainer.part_threads.close()
+            trainer.part_threads = None
     train_seconds = time.perf_counter() - started
 
     model_dir = output_dir / MODEL_DIR

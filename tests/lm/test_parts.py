@@ -1,0 +1,142 @@
+"""A batch cut into parts computed side by side by Python threads (pipeline/lm/training/parts.py)."""
+import random
+import threading
+
+import pytest
+import torch
+
+from pipeline.lm.chat import WORD_LEVEL_FORMAT
+from pipeline.lm.model_settings import ModelSettings
+from pipeline.lm.models import build_scratch_model, load_model
+from pipeline.lm.tokenizer import build_word_tokenizer
+from pipeline.lm.training.parts import PartThreads, split_rows
+from pipeline.lm.training.settings import TrainSettings
+from pipeline.lm.training.trainer import finetune
+from pipeline.workflow.config import PYTHON_H, cxx_compiler
+
+TINY = dict(hidden_size=32, num_layers=2, num_heads=2, intermediate_size=64, max_length=512)
+
+
+def batch(lengths, width, pad=0):
+    ids = torch.full((len(lengths), width), pad)
+    mask = torch.zeros((len(lengths), width), dtype=torch.long)
+    for row, n in enumerate(lengths):
+        ids[row, :n] = torch.arange(1, n + 1)
+        mask[row, :n] = 1
+    return {"input_ids": ids, "labels": ids.clone(), "attention_mask": mask,
+            "position_ids": torch.arange(width).repeat(len(lengths), 1)}
+
+
+def test_parts_are_consecutive_rows_cut_to_their_own_width():
+    inputs = batch([3, 5, 9, 10, 17], width=24)
+    parts = split_rows(inputs, 2, multiple=8)
+    assert [p["input_ids"].shape for p in parts] == [(2, 8), (3, 24)]  # 5 -> 8; 17 -> 24 (the batch's own)
+    assert all(p.keys() == inputs.keys() for p in parts)
+    rows = torch.cat([torch.nn.functional.pad(p["input_ids"], (0, 24 - p["input_ids"].shape[1])) for p in parts])
+    assert torch.equal(rows, inputs["input_ids"])  # nothing but padding was cut
+    assert [p["input_ids"].shape[1] for p in split_rows(inputs, 2)] == [5, 17]
+    assert [p["input_ids"].shape[0] for p in split_rows(batch([1], width=8), 2)] == [1]  # no empty part
+
+
+def test_without_a_mask_parts_keep_the_batch_width():
+    inputs = {k: v for k, v in batch([3, 5, 9], width=16).items() if k != "attention_mask"}
+    assert [p["input_ids"].shape for p in split_rows(inputs, 2)] == [(2, 16), (1, 16)]
+
+
+def test_part_threads_run_side_by_side_on_their_own_torch_threads_and_return_in_order():
+    before = torch.get_num_threads()
+    pool = PartThreads(2, intra_op=1)
+    try:
+        def call(value, barrier=None):
+            def run():
+                if barrier:
+                    barrier.wait()  # passes only if the two calls run at the same time
+                return value, torch.get_num_threads(), threading.current_thread().name
+            return run
+
+        first = pool.run([call("a"), call("b")])  # the first run goes one at a time (it may compile)
+        assert first == [("a", 1, "batch-part-0"), ("b", 1, "batch-part-0")]
+        both = threading.Barrier(2, timeout=10)
+        results = pool.run([call("a", both), call("b", both)])
+        assert [r[:2] for r in results] == [("a", 1), ("b", 1)]
+        assert {r[2] for r in results} == {"batch-part-0", "batch-part-1"}
+        assert torch.get_num_threads() == before  # the caller's threads keep their setting
+    finally:
+        pool.close()
+
+
+def test_a_part_that_fails_raises_in_the_caller():
+    pool = PartThreads(2)
+    try:
+        def boom():
+            raise ValueError("part failed")
+        pool.run([lambda: 1, lambda: 2])
+        with pytest.raises(ValueError, match="part failed"):
+            pool.run([lambda: 1, boom])
+        assert pool.run([lambda: 3, lambda: 4]) == [3, 4]  # and the threads still serve
+    finally:
+        pool.close()
+
+
+def conversation(rng):
+    x, y = rng.randint(2, 6), rng.randint(2, 6)
+    thought = "\n".join(f"Step {k}:\n({rng.randint(0, x)}, {rng.randint(0, y)})\n{rng.choice(['up', 'cut'])}"
+                        for k in range(1, rng.randint(2, 7)))
+    return [{"from": "human", "value": f"Grid is from (0, 0) to ({x}, {y}). Goal: ({x}, {y})"},
+            {"from": "gpt", "value": f"Thought:\n{thought}\nPlan:\nup"}]
+
+
+@pytest.fixture(scope="module")
+def data():
+    rng = random.Random(0)
+    conversations = [conversation(rng) for _ in range(40)]
+    return conversations, build_word_tokenizer(t["value"] for c in conversations for t in c)
+
+
+@pytest.mark.parametrize("stretch", [1.0, 2.0])
+def test_parts_train_what_the_whole_batch_trains_and_the_same_each_run(data, tmp_path, stretch):
+    conversations, tokenizer = data
+    settings = dict(max_steps=6, report_to=(), logging_steps=1, save_steps=100, learning_rate=1e-2,
+                    per_device_batch_size=4, torch_threads=2, optimizer="muon", position_stretch=stretch)
+
+    def run(name, **extra):
+        model = build_scratch_model(tokenizer, ModelSettings(**TINY), seed=0)
+        result = finetune(model, tokenizer, WORD_LEVEL_FORMAT, conversations, TrainSettings(**settings, **extra),
+                          tmp_path / name)
+        return result, load_model(result.model_dir).state_dict()
+
+    whole, w = run("whole")
+    parts, p = run("parts", batch_threads=2)
+    again, q = run("again", batch_threads=2)
+    assert parts.final_loss == pytest.approx(whole.final_loss, rel=1e-4)  # the same batches, loss and update
+    assert all(torch.allclose(w[k], p[k], atol=1e-4) for k in w)
+    assert again.final_loss == parts.final_loss and all(torch.equal(p[k], q[k]) for k in p)  # deterministic
+
+
+def test_batch_threads_beyond_two_are_refused_naming_the_value():
+    with pytest.raises(ValueError, match="batch_threads=3.*from 1 to 2"):
+        TrainSettings(batch_threads=3)
+
+
+@pytest.mark.slow  # compiling the layer's C++ wrapper takes about a minute on 2 cores with an empty cache
+@pytest.mark.skipif(cxx_compiler() is None or not PYTHON_H.is_file(), reason="torch.compile on a CPU needs a C++ "
+                    "compiler and the Python headers")
+def test_compiled_parts_train_what_eager_parts_train_and_compile_once(data, tmp_path):
+    conversations, tokenizer = data
+    settings = dict(max_steps=8, report_to=(), logging_steps=1, save_steps=100, learning_rate=1e-2,
+                    per_device_batch_size=4, torch_threads=2, optimizer="muon", position_stretch=2.0,
+                    batch_threads=2, pad_to_multiple_of=1)
+
+    def run(name, compile_scope):  # eager attention, as the CPU default (sdpa's mask is None for a part unpadded)
+        model = build_scratch_model(tokenizer, ModelSettings(**TINY, attn_implementation="eager"), seed=0)
+        result = finetune(model, tokenizer, WORD_LEVEL_FORMAT, conversations,
+                          TrainSettings(torch_compile=compile_scope, **settings), tmp_path / name)
+        return result, load_model(result.model_dir).state_dict()
+
+    eager, e = run("eager", "none")
+    torch._dynamo.reset()
+    graphs = torch._dynamo.utils.counters["stats"]["unique_graphs"]
+    compiled, c = run("compiled", "regional")
+    assert torch._dynamo.utils.counters["stats"]["unique_graphs"] - graphs == 1  # one layer graph, one thread count
+    assert compiled.final_loss == pytest.approx(eager.final_loss, rel=1e-3)
+    assert all(torch.allclose(e[k], c[k], atol=1e-3) for k in e)
