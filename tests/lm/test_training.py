@@ -447,11 +447,14 @@ class StopAt(TrainerCallback):
             control.should_training_stop = True
 
 
-@pytest.mark.parametrize("optimizer, stretch", [("adamw", 1.0), ("muon", 1.0), ("muon", 2.0)])
-def test_resume_after_interruption_matches_an_uninterrupted_run(tokenizer, conversations, tmp_path, optimizer, stretch):
+@pytest.mark.parametrize("optimizer, stretch, parts", [("adamw", 1.0, 1), ("muon", 1.0, 1), ("muon", 2.0, 1),
+                                                        ("muon", 2.0, 2)])
+def test_resume_after_interruption_matches_an_uninterrupted_run(tokenizer, conversations, tmp_path, optimizer, stretch,
+                                                                parts):
     """Bit for bit: Trainer restores optimizer, schedule and RNG states, and the sampler (and the stretched
     positions' draws) come from torch's RNG."""
-    settings = TrainSettings(max_steps=8, optimizer=optimizer, position_stretch=stretch, **{**QUIET, "save_steps": 3})
+    settings = TrainSettings(max_steps=8, optimizer=optimizer, position_stretch=stretch, batch_threads=parts,
+                             **{**QUIET, "save_steps": 3})
     whole = finetune(tiny_model(tokenizer), tokenizer, WORD_LEVEL_FORMAT, conversations, settings, tmp_path / "a")
     cut = finetune(tiny_model(tokenizer), tokenizer, WORD_LEVEL_FORMAT, conversations, settings, tmp_path / "b",
                    callbacks=[StopAt(4)])
