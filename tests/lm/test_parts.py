@@ -140,3 +140,18 @@ def test_compiled_parts_train_what_eager_parts_train_and_compile_once(data, tmp_
     assert torch._dynamo.utils.counters["stats"]["unique_graphs"] - graphs == 1  # one layer graph, one thread count
     assert compiled.final_loss == pytest.approx(eager.final_loss, rel=1e-3)
     assert all(torch.allclose(e[k], c[k], atol=1e-3) for k in e)
+
+
+def test_a_job_on_fewer_threads_than_parts_keeps_its_batches_whole(data, tmp_path):
+    conversations, tokenizer = data
+    settings = dict(max_steps=4, report_to=(), logging_steps=1, save_steps=100, learning_rate=1e-2,
+                    per_device_batch_size=4, torch_threads=1)
+
+    def weights(name, **extra):
+        model = build_scratch_model(tokenizer, ModelSettings(**TINY), seed=0)
+        result = finetune(model, tokenizer, WORD_LEVEL_FORMAT, conversations, TrainSettings(**settings, **extra),
+                          tmp_path / name)
+        return load_model(result.model_dir).state_dict()
+
+    whole, parts = weights("whole"), weights("parts", batch_threads=2)
+    assert all(torch.equal(whole[k], parts[k]) for k in whole)  # one thread: the parts would only cost time

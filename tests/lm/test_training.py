@@ -454,7 +454,7 @@ def test_resume_after_interruption_matches_an_uninterrupted_run(tokenizer, conve
     """Bit for bit: Trainer restores optimizer, schedule and RNG states, and the sampler (and the stretched
     positions' draws) come from torch's RNG."""
     settings = TrainSettings(max_steps=8, optimizer=optimizer, position_stretch=stretch, batch_threads=parts,
-                             **{**QUIET, "save_steps": 3})
+                             **{**QUIET, "save_steps": 3, "torch_threads": parts})  # parts need a thread each
     whole = finetune(tiny_model(tokenizer), tokenizer, WORD_LEVEL_FORMAT, conversations, settings, tmp_path / "a")
     cut = finetune(tiny_model(tokenizer), tokenizer, WORD_LEVEL_FORMAT, conversations, settings, tmp_path / "b",
                    callbacks=[StopAt(4)])

@@ -9,7 +9,8 @@ from its C++ wrapper (``cpp_wrapper``), which `compiled_blocks` then asks for.
 Each part is computed on one intra-op thread, its loss normalized by the whole batch's label count, and its
 gradients accumulate into the same ``.grad``; with two parts the sum is the same whichever finishes first
 (floating-point addition of two terms commutes), so a run is deterministic. Where the process has fewer
-threads than parts (a grid job on one thread), the parts run one after the other on that thread. Dynamo must
+threads than parts (a grid job on one thread), the batch stays whole: parts one after the other on one thread
+ran 0.97x. Dynamo must
 not compile in two threads at once (it deadlocked here), so the first step's parts run one after the other;
 later steps run under ``fail_on_recompile`` and redo, one at a time, a part that would recompile (it fails in
 its forward, before its gradients exist).

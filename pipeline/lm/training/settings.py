@@ -88,8 +88,8 @@ class TrainSettings:
     # positions); decoding keeps plain ones. Not in the paper (README, "Extrapolation").
     position_stretch: float = field(default=1.0, metadata={"hash_if_set": True})
     # Each micro-batch cut into this many parts of consecutive rows, computed side by side by as many Python
-    # threads where the job has that many torch threads, else one after the other; the same training, rounded
-    # otherwise than the uncut batch (pipeline/lm/training/parts.py; README, Speed).
+    # threads where the job has that many torch threads (else whole); the same training, rounded otherwise than
+    # the uncut batch (pipeline/lm/training/parts.py; README, Speed).
     batch_threads: int = field(default=1, metadata={"hash_if_set": True})
 
     def __post_init__(self) -> None:
