@@ -10,10 +10,9 @@ Each part is computed on one intra-op thread, its loss normalized by the whole b
 gradients accumulate into the same ``.grad``; with two parts the sum is the same whichever finishes first
 (floating-point addition of two terms commutes), so a run is deterministic. Where the process has fewer
 threads than parts (a grid job on one thread), the batch stays whole: parts one after the other on one thread
-ran 0.97x. Dynamo must
-not compile in two threads at once (it deadlocked here), so the first step's parts run one after the other;
-later steps run under ``fail_on_recompile`` and redo, one at a time, a part that would recompile (it fails in
-its forward, before its gradients exist).
+ran 0.97x. Dynamo must not compile in two threads at once (it deadlocked here), so the first step's parts run
+one after the other; later steps run under ``fail_on_recompile`` and redo, one at a time, a part that would
+recompile (it fails in its forward, before its gradients exist).
 """
 
 from __future__ import annotations
@@ -49,6 +48,7 @@ class PartThreads:
     """``n`` daemon threads, each with ``intra_op`` torch threads, that run one call each per `run`."""
 
     def __init__(self, n: int, intra_op: int = 1):
+        self.parts = n
         self._inbox = [queue.Queue() for _ in range(n)]
         self._done: queue.Queue = queue.Queue()
         self._compiled = False
@@ -62,9 +62,9 @@ class PartThreads:
             if call is None:
                 return
             try:
-                self._done.put((i, True, call()))
+                self._done.put((True, call()))
             except BaseException as error:  # handed to the caller, raised there
-                self._done.put((i, False, error))
+                self._done.put((False, error))
 
     def run(self, calls: Sequence[Callable]) -> list:
         """Each call's result, in order. The calls run side by side; the first time, and for any call that
@@ -82,8 +82,8 @@ class PartThreads:
             self._inbox[index % len(self._inbox)].put(_Tagged(index, call))
         outcome: list = [None] * len(calls)
         for _ in calls:
-            _, ok, value = self._done.get()
-            index, result = value if ok else (getattr(value, "part_index", None), value)
+            ok, value = self._done.get()
+            index, result = value if ok else (value.part_index, value)
             outcome[index] = (ok, result)
         for ok, result in outcome:
             if not ok and not _is_recompile(result):
@@ -92,7 +92,7 @@ class PartThreads:
 
     def _one(self, call: Callable):
         self._inbox[0].put(_Tagged(0, call))
-        _, ok, value = self._done.get()
+        ok, value = self._done.get()
         if not ok:
             raise value
         return value[1]
@@ -117,4 +117,4 @@ class _Tagged:
 
 
 def _is_recompile(error: BaseException) -> bool:
-    return "fail_on_recompile" in str(error) or type(error).__name__ == "RecompileError"
+    return "fail_on_recompile" in str(error)  # dynamo raises a RuntimeError naming the stance

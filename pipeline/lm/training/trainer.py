@@ -72,14 +72,12 @@ class _Trainer(Trainer):
     With ``position_stretch`` > 1 each training batch gets stretched position ids (`stretched_batch_positions`)
     drawn from (seed, step, micro-batch within the step): a resumed run draws what the uninterrupted one drew.
 
-    With ``batch_parts`` > 1 each micro-batch is cut into that many parts of consecutive rows, computed side by
-    side on ``part_threads`` (`pipeline.lm.training.parts`); the positions are drawn for the whole micro-batch
-    first, so they are those of the uncut run."""
+    With ``part_threads`` each micro-batch is cut into as many parts of consecutive rows (each padded as the
+    collator pads), computed side by side (`pipeline.lm.training.parts`); the positions are drawn for the whole
+    micro-batch first, so they are those of the uncut run."""
 
     position_stretch: float = 1.0
-    batch_parts: int = 1
-    part_threads: PartThreads | None = None   # set with batch_parts > 1
-    pad_to_multiple_of: int = 1
+    part_threads: PartThreads | None = None
     _draw: tuple[int, int] = (-1, 0)   # (global step, micro-batches drawn in it)
 
     def _with_positions(self, model, inputs):
@@ -96,11 +94,12 @@ class _Trainer(Trainer):
         return super().compute_loss(model, self._with_positions(model, inputs), *args, **kwargs)
 
     def training_step(self, model, inputs, num_items_in_batch=None):
-        if self.batch_parts == 1:
+        if self.part_threads is None:
             return super().training_step(model, inputs, num_items_in_batch)
         if num_items_in_batch is None:  # each part's loss must be a share of the whole batch's
             raise ValueError("batch_threads > 1 needs a model that takes num_items_in_batch (a causal LM does)")
-        parts = split_rows(self._with_positions(model, inputs), self.batch_parts, self.pad_to_multiple_of)
+        parts = split_rows(self._with_positions(model, inputs), self.part_threads.parts,
+                           self.data_collator.pad_to_multiple_of)
         step = super().training_step
         calls = [functools.partial(step, model, part, num_items_in_batch) for part in parts]
         losses = self.part_threads.run(calls)
@@ -298,7 +297,6 @@ def _finetune(model, tokenizer, fmt, conversations, settings, output_dir, seed, 
     # On fewer threads than parts the batch stays whole: parts one after the other measured 0.97x (README, Speed).
     side_by_side = settings.batch_threads > 1 and threads >= settings.batch_threads
     if side_by_side:
-        trainer.batch_parts, trainer.pad_to_multiple_of = settings.batch_threads, settings.pad_to_multiple_of
         trainer.part_threads = PartThreads(settings.batch_threads, threads // settings.batch_threads)
     if any(isinstance(c, ProgressCallback) for c in trainer.callback_handler.callbacks):
         trainer.remove_callback(ProgressCallback)
