@@ -31,6 +31,8 @@ conversations through `pipeline.lm.training.trainer.finetune`, with the default 
   joined words' rows composed or not): fewer tokens a conversation, so compare conversations/s.
 - ``default, whole batches``: the default with ``batch_threads`` 1 (when the default cuts each batch into parts
   computed side by side by Python threads): what the parts buy.
+- ``default, logits everywhere``: the default with ``labelled_logits`` false (when the default applies the output
+  head and the loss at the labelled positions only): what that buys.
 
 Each run prints two rates: over all its steps (compiling included), and in steady state: the median rate of
 the optimizer steps themselves (forward, backward and update: no batch loading or logging) after the first
@@ -177,7 +179,8 @@ def main() -> None:
                         help="the other-newlines run's cut (default: joined, or own if the model joins them)")
     parser.add_argument("--only", choices=("padded-fp32", "packed-fp32", "packed-bf16", "default", "when-faster",
                                            "default, paper prompt", "other-optimizer", "muon-bf16",
-                                           "other-attention", "plain-positions", "other-newlines", "whole-batches"),
+                                           "other-attention", "plain-positions", "other-newlines", "whole-batches",
+                                           "all-logits"),
                         action="append", help="run only these (repeatable)")
     args = parser.parse_args()
     if not 0 <= args.skip < args.steps:
@@ -252,9 +255,10 @@ def main() -> None:
     if other_attention and model_cfg.attention_scale == "constant":
         runs[attention_run] = runs[default]
         attention[attention_run] = other_attention
+    # The default's family (every run named "default...") trains as --train sets each switch below; the padded and
+    # packed baselines keep plain positions, whole batches and logits everywhere. Each run below changes one switch.
     # What stretched positions cost (train.position_stretch; they send the attention mask): the default without.
-    # The default's family stretches as --train sets; the padded and packed baselines keep plain positions.
-    stretch = {name: train_cfg.position_stretch for name in runs if name.startswith("default")}
+    stretch: dict[str, float] = {}  # name: position_stretch where it is not the family's
     plain_positions = f"{default}, plain positions"
     if scope != "none" and train_cfg.position_stretch > 1:
         runs[plain_positions] = runs[default]
@@ -263,17 +267,28 @@ def main() -> None:
     newlines_run = f"{default}, newlines {other_newlines}"
     if scope != "none":
         runs[newlines_run] = runs[default]
-        stretch[newlines_run] = stretch[default]
     run_newlines = {newlines_run: other_newlines}  # name: model.newlines where it is not the model yaml's
     # What cutting each batch into parts computed side by side buys (train.batch_threads): the default uncut.
-    parts = {name: train_cfg.batch_threads for name in runs if name.startswith("default")}
+    parts: dict[str, int] = {}  # name: batch_threads where it is not the family's
     whole_batches = f"{default}, whole batches"
     if scope != "none" and train_cfg.batch_threads > 1:
         runs[whole_batches] = runs[default]
         parts[whole_batches] = 1
+    # What the head and loss at the labelled positions only buy (train.labelled_logits): the default at every one.
+    labelled: dict[str, bool] = {}  # name: labelled_logits where it is not the family's
+    all_logits = f"{default}, logits everywhere"
+    if scope != "none" and train_cfg.labelled_logits:
+        runs[all_logits] = runs[default]
+        labelled[all_logits] = False
+
+    def switch(name: str, overrides: dict, family_value, baseline_value):
+        """A run's value of one switch: its own, else the family's (--train) or the baselines'."""
+        return overrides.get(name, family_value if name.startswith("default") else baseline_value)
+
     selected = {"default": default, "when-faster": when_faster, "other-optimizer": other_optimizer,
                 "muon-bf16": muon_other, "other-attention": attention_run, "plain-positions": plain_positions,
-                "other-newlines": newlines_run, "whole-batches": whole_batches}
+                "other-newlines": newlines_run, "whole-batches": whole_batches,
+                "all-logits": all_logits}
     wanted = {selected.get(name, name) for name in args.only or runs}
     rounds: dict[str, list[tuple[float, float]]] = {}  # name: (overall, steady) real tokens/s of each round
     per_token: dict[str, float] = {}  # name: useful training FLOPs per real token of its conversations
@@ -299,7 +314,9 @@ def main() -> None:
             pad_to_multiple_of=train_cfg.pad_to_multiple_of,
             report_to=(), logging_steps=args.steps, save_steps=10 * args.steps, torch_threads=args.threads,
             torch_compile=compile_scope, optimizer=optimizer, muon_bf16=muon_bf16,
-            position_stretch=stretch.get(name, 1.0), batch_threads=parts.get(name, 1),
+            position_stretch=switch(name, stretch, train_cfg.position_stretch, 1.0),
+            batch_threads=switch(name, parts, train_cfg.batch_threads, 1),
+            labelled_logits=switch(name, labelled, train_cfg.labelled_logits, False),
         )
         clock = StepClock()
         with tempfile.TemporaryDirectory() as out:

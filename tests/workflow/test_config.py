@@ -305,7 +305,7 @@ def test_settings_added_since_keep_the_step_hashes_of_finished_runs(monkeypatch)
 
     old_default = ("data.train_deep=0", "train.optimizer=adamw", "train.bf16_when_faster=false", "model.numbers=whole",
                    "model.attn_implementation=sdpa", "train.position_stretch=1", "model.plan_form=moves",
-                   "model.newlines=own", "train.batch_threads=1")
+                   "model.newlines=own", "train.batch_threads=1", "train.labelled_logits=false")
     assert hashes("eval.n_valid=0", *old_default, toy=False) == {
         "data-build": "9084abe767f5f3cf", "finetune": "9f74feb50b9e71d8", "eval": "7a5f1b9983e9f635"}
     assert hashes(*old_default, toy=False)["eval"] != "7a5f1b9983e9f635"

@@ -91,6 +91,9 @@ class TrainSettings:
     # threads where the job has that many torch threads (else whole); the same training, rounded otherwise than
     # the uncut batch (pipeline/lm/training/parts.py; README, Speed).
     batch_threads: int = field(default=1, metadata={"hash_if_set": True})
+    # The output head and the loss computed at the labelled (trained) positions only, not at every position: the
+    # same loss and gradients, rounded otherwise (pipeline/lm/training/trainer.py: labelled_loss; README, Speed).
+    labelled_logits: bool = field(default=False, metadata={"hash_if_set": True})
 
     def __post_init__(self) -> None:
         self.report_to = [self.report_to] if isinstance(self.report_to, str) else list(self.report_to)
@@ -130,6 +133,8 @@ class TrainSettings:
                 "the order their gradients add up in would vary between runs)")
         require(self.batch_threads == 1 or self.accelerate_config is None, "batch_threads", self.batch_threads,
                 "1 with accelerate_config (distributed training splits batches its own way)")
+        require(not self.labelled_logits or self.accelerate_config is None, "labelled_logits", self.labelled_logits,
+                "false with accelerate_config (a sharded model computes its head inside its own forward)")
         require(self.long_conversations in LONG_CONVERSATIONS, "long_conversations", self.long_conversations,
                 f"one of {', '.join(LONG_CONVERSATIONS)}")
 

@@ -1,0 +1,94 @@
+"""The output head and loss at the labelled positions only (`TrainSettings.labelled_logits`)."""
+import random
+
+import pytest
+import torch
+
+from pipeline.lm.chat import IGNORE_INDEX, WORD_LEVEL_FORMAT
+from pipeline.lm.model_settings import ModelSettings
+from pipeline.lm.models import build_scratch_model, load_model
+from pipeline.lm.tokenizer import build_word_tokenizer
+from pipeline.lm.training.settings import SettingError, TrainSettings
+from pipeline.lm.training.trainer import finetune, labelled_loss
+
+TINY = dict(hidden_size=32, num_layers=2, num_heads=2, intermediate_size=64, max_length=512)
+
+
+def conversation(rng):
+    x, y = rng.randint(2, 6), rng.randint(2, 6)
+    thought = "\n".join(f"Step {k}:\n({rng.randint(0, x)}, {rng.randint(0, y)})\n{rng.choice(['up', 'cut'])}"
+                        for k in range(1, rng.randint(2, 7)))
+    return [{"from": "human", "value": f"Grid is from (0, 0) to ({x}, {y}). Goal: ({x}, {y})"},
+            {"from": "gpt", "value": f"Thought:\n{thought}\nPlan:\nup"}]
+
+
+@pytest.fixture(scope="module")
+def data():
+    rng = random.Random(0)
+    conversations = [conversation(rng) for _ in range(40)]
+    return conversations, build_word_tokenizer(t["value"] for c in conversations for t in c)
+
+
+def inputs_with_unlabelled_positions(vocab: int) -> dict:
+    generator = torch.Generator().manual_seed(0)
+    ids = torch.randint(1, vocab, (3, 12), generator=generator)
+    labels = ids.clone()
+    labels[:, :5] = IGNORE_INDEX      # a prompt
+    labels[1, 9:] = IGNORE_INDEX      # padding
+    labels[2, :] = IGNORE_INDEX       # a row with nothing to learn
+    mask = torch.ones_like(ids)
+    mask[1, 9:] = 0
+    return {"input_ids": ids, "labels": labels, "attention_mask": mask}
+
+
+@pytest.mark.parametrize("num_items", [None, 7])
+def test_labelled_loss_is_the_models_own_loss_with_its_gradients(data, num_items):
+    _, tokenizer = data
+    model = build_scratch_model(tokenizer, ModelSettings(**TINY), seed=0)
+    inputs = inputs_with_unlabelled_positions(len(tokenizer))
+
+    def loss_and_grads(compute):
+        model.zero_grad(set_to_none=True)
+        loss = compute()
+        loss.backward()
+        return loss.detach(), {n: p.grad.clone() for n, p in model.named_parameters()}
+
+    own, own_grads = loss_and_grads(lambda: model(**inputs, num_items_in_batch=num_items).loss)
+    ours, our_grads = loss_and_grads(lambda: labelled_loss(model, inputs, num_items))
+    assert torch.allclose(ours, own, rtol=1e-6)
+    assert all(torch.allclose(our_grads[n], own_grads[n], atol=1e-7) for n in own_grads)
+
+
+def test_a_batch_without_labelled_positions_has_zero_loss_and_gradients(data):
+    _, tokenizer = data
+    model = build_scratch_model(tokenizer, ModelSettings(**TINY), seed=0)
+    inputs = inputs_with_unlabelled_positions(len(tokenizer))
+    inputs["labels"] = torch.full_like(inputs["labels"], IGNORE_INDEX)
+    loss = labelled_loss(model, inputs, 5)
+    loss.backward()
+    assert loss.item() == 0 and all(not p.grad.any() for p in model.parameters())
+
+
+def test_training_with_labelled_logits_trains_what_the_full_head_trains(data, tmp_path):
+    conversations, tokenizer = data
+    settings = dict(max_steps=6, report_to=(), logging_steps=1, save_steps=100, learning_rate=1e-2,
+                    per_device_batch_size=4, torch_threads=2, optimizer="muon", position_stretch=2.0)
+
+    def run(name, **extra):
+        model = build_scratch_model(tokenizer, ModelSettings(**TINY), seed=0)
+        result = finetune(model, tokenizer, WORD_LEVEL_FORMAT, conversations, TrainSettings(**settings, **extra),
+                          tmp_path / name)
+        return result, load_model(result.model_dir).state_dict()
+
+    full, f = run("full")
+    labelled, lab = run("labelled", labelled_logits=True)
+    parts, p = run("parts", labelled_logits=True, batch_threads=2)
+    assert labelled.final_loss == pytest.approx(full.final_loss, rel=1e-4)
+    assert all(torch.allclose(f[k], lab[k], atol=1e-4) for k in f)
+    assert parts.final_loss == pytest.approx(full.final_loss, rel=1e-4)
+    assert all(torch.allclose(f[k], p[k], atol=1e-4) for k in f)
+
+
+def test_labelled_logits_with_accelerate_are_refused_naming_the_value():
+    with pytest.raises(SettingError, match="labelled_logits=True.*false with accelerate_config"):
+        TrainSettings(labelled_logits=True, accelerate_config="fsdp.yaml")
