@@ -19,6 +19,7 @@ from pipeline.core.variants import PAPER_ROWS
 from pipeline.core.checks import SettingError
 from pipeline.core.world import WorldError
 from pipeline.lm.model_settings import ModelKind
+from pipeline.lm.training.settings import CompileMode
 from pipeline.workflow.config import ConfigError, JobSettings, UndefinedCell, config_hash, register_configs, validate
 from pipeline.workflow.data_build import TEST_CONVERSATIONS, TRAIN_CONVERSATIONS, TextSettings, log_step_dataset, run_data_build
 from pipeline.workflow.evaluation import run_eval
@@ -121,6 +122,10 @@ def run_job(cfg: DictConfig) -> dict | None:
         import torch
 
         torch.set_num_threads(cfg.threads)
+    if job.train.torch_compile is CompileMode.regional:
+        from pipeline.lm.training.compile import warm_compiler
+
+        warm_compiler()  # g++ beside the data-build
     experiment_id = prepare_store(cfg)
     mlflow.set_tracking_uri(cfg.tracking.uri)
     mlflow.set_experiment(experiment_id=experiment_id)

@@ -2,6 +2,7 @@ import json
 import math
 import os
 import random
+import threading
 
 import mlflow
 import pytest
@@ -506,3 +507,29 @@ def test_the_papers_gpu_settings_reach_the_trainer(tmp_path):
     args = _training_arguments(TrainSettings(gradient_checkpointing=True, tf32=True, **QUIET), tmp_path, 0)
     assert getattr(args, "activation_checkpointing", None) or args.gradient_checkpointing
     assert args.tf32 is (True if torch.cuda.is_available() else None)  # tf32 is a GPU setting: left alone on a CPU
+
+
+def test_the_compilers_checks_run_ahead_in_a_thread_that_compiling_waits_for(monkeypatch, tokenizer):
+    import time
+
+    import torch._inductor.cpu_vec_isa as isa
+
+    from pipeline.lm.training import compile as compile_module
+
+    ran = []
+
+    def slow_checks():
+        time.sleep(0.3)
+        ran.append((threading.current_thread().name, time.perf_counter()))
+
+    monkeypatch.setattr(isa, "pick_vec_isa", slow_checks)
+    monkeypatch.setattr(compile_module, "_warming", None)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    compile_module.warm_compiler()
+    compile_module.warm_compiler()  # once per process
+    model = build_scratch_model(tokenizer, ModelSettings(hidden_size=32, num_layers=2, num_heads=2,
+                                                         intermediate_size=64), seed=0)
+    with compile_module.compiled_blocks(model, "regional"):
+        entered = time.perf_counter()
+    assert [name for name, _ in ran] == ["inductor-isa-checks"]
+    assert entered >= ran[0][1]  # compiling began only after the checks

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import logging
 import os
+import threading
 import time
 from contextlib import contextmanager
 from pathlib import Path
@@ -101,6 +102,36 @@ def dynamo_environment():
         os.environ.update(saved)
 
 
+_warming: threading.Thread | None = None
+
+
+def warm_compiler() -> None:
+    """Start, in a background thread, what inductor does once per process before its first compile on a CPU: it
+    checks which vector instructions the C++ compiler can use by compiling six small programs (about 6-7 s of g++
+    on these CPUs with an empty inductor cache; its cache keeps the programs, so later processes only load them).
+    A job calls this before its data-build, whose Python keeps one core busy while g++ runs on the other;
+    `compiled_blocks` waits for it. Once per process; nothing where a GPU trains."""
+    global _warming
+    if _warming is not None or torch.cuda.is_available():
+        return
+
+    def check() -> None:
+        try:
+            from torch._inductor.cpu_vec_isa import pick_vec_isa
+
+            pick_vec_isa()  # cached for the process: the compile that follows asks again and gets the answer
+        except Exception as error:  # noqa: BLE001 - the compile itself meets and reports whatever failed here
+            log.debug("inductor's vector-instruction checks, ahead of compiling: %s", error)
+
+    _warming = threading.Thread(target=check, name="inductor-isa-checks", daemon=True)
+    _warming.start()
+
+
+def _warmed() -> None:
+    if _warming is not None:
+        _warming.join()
+
+
 @contextmanager
 def compiled_blocks(model: torch.nn.Module, torch_compile: str, release_gil: bool = False):
     """With ``regional``, compile every block of the model's repeated blocks (a decoder's layers: the
@@ -117,13 +148,15 @@ def compiled_blocks(model: torch.nn.Module, torch_compile: str, release_gil: boo
     Dynamo's caches are reset afterwards, so the next job in the same process starts under no guards or
     recompile counts of this one (inductor's on-disk cache keeps the compiled kernels). With ``release_gil``
     the compiled graphs run from inductor's C++ wrapper, which releases Python's interpreter lock, so threads
-    computing parts of a batch overlap (`pipeline.lm.training.parts`); the kernels are the same.
+    computing parts of a batch overlap (`pipeline.lm.training.parts`); the kernels are the same. It waits for
+    `warm_compiler`'s checks, if a job started them.
     """
     if torch_compile != "regional":
         yield
         return
     blocks = [block for module in model.modules() if isinstance(module, torch.nn.ModuleList) and len(module) > 1
               and len({type(block) for block in module}) == 1 for block in module]
+    _warmed()  # the vector-instruction checks `warm_compiler` started: one thread compiles at a time
     for block in blocks:
         block.compile(dynamic=True, options={"cpp_wrapper": True} if release_gil else None)
     try:
