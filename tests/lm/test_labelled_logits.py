@@ -9,6 +9,7 @@ from pipeline.lm.model_settings import ModelSettings
 from pipeline.lm.models import build_scratch_model, load_model
 from pipeline.lm.tokenizer import build_word_tokenizer
 from pipeline.lm.training.settings import SettingError, TrainSettings
+from pipeline.lm.training import trainer as trainer_module
 from pipeline.lm.training.trainer import finetune, labelled_loss
 
 TINY = dict(hidden_size=32, num_layers=2, num_heads=2, intermediate_size=64, max_length=512)
@@ -69,8 +70,15 @@ def test_a_batch_without_labelled_positions_has_zero_loss_and_gradients(data):
     assert loss.item() == 0 and all(not p.grad.any() for p in model.parameters())
 
 
-def test_training_with_labelled_logits_trains_what_the_full_head_trains(data, tmp_path):
+def test_training_with_labelled_logits_trains_what_the_full_head_trains(data, tmp_path, monkeypatch):
     conversations, tokenizer = data
+    calls = []
+
+    def counted(*args, **kwargs):
+        calls.append(args[1]["input_ids"].shape[0])
+        return labelled_loss(*args, **kwargs)
+
+    monkeypatch.setattr(trainer_module, "labelled_loss", counted)
     settings = dict(max_steps=6, report_to=(), logging_steps=1, save_steps=100, learning_rate=1e-2,
                     per_device_batch_size=4, torch_threads=2, optimizer="muon", position_stretch=2.0)
 
@@ -81,8 +89,11 @@ def test_training_with_labelled_logits_trains_what_the_full_head_trains(data, tm
         return result, load_model(result.model_dir).state_dict()
 
     full, f = run("full")
+    assert calls == []
     labelled, lab = run("labelled", labelled_logits=True)
+    assert calls == [4] * 6  # every micro-batch of every step
     parts, p = run("parts", labelled_logits=True, batch_threads=2)
+    assert calls[6:] == [2] * 12  # and every part of them
     assert labelled.final_loss == pytest.approx(full.final_loss, rel=1e-4)
     assert all(torch.allclose(f[k], lab[k], atol=1e-4) for k in f)
     assert parts.final_loss == pytest.approx(full.final_loss, rel=1e-4)
@@ -92,3 +103,14 @@ def test_training_with_labelled_logits_trains_what_the_full_head_trains(data, tm
 def test_labelled_logits_with_accelerate_are_refused_naming_the_value():
     with pytest.raises(SettingError, match="labelled_logits=True.*false with accelerate_config"):
         TrainSettings(labelled_logits=True, accelerate_config="fsdp.yaml")
+
+
+def test_a_model_whose_logits_are_not_its_heads_output_keeps_its_own_loss(data, tmp_path, monkeypatch, caplog):
+    conversations, tokenizer = data
+    monkeypatch.setattr(trainer_module, "PLAIN_HEAD_MODELS", ("SomeOtherForCausalLM",))
+    monkeypatch.setattr(trainer_module, "labelled_loss", lambda *a, **k: pytest.fail("labelled_loss was used"))
+    model = build_scratch_model(tokenizer, ModelSettings(**TINY), seed=0)
+    settings = TrainSettings(max_steps=2, report_to=(), save_steps=100, per_device_batch_size=4, labelled_logits=True)
+    with caplog.at_level("WARNING"):
+        finetune(model, tokenizer, WORD_LEVEL_FORMAT, conversations, settings, tmp_path)
+    assert sum("its own forward computes the loss instead" in r.message for r in caplog.records) == 1

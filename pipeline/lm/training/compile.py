@@ -115,10 +115,13 @@ def warm_compiler() -> None:
     if _warming is not None or torch.cuda.is_available():
         return
 
+    # Imported here, on the calling thread: the thread below only runs the checks (no imports beside a data-build
+    # that forks worker processes).
+    from torch._inductor import codecache  # noqa: F401 - the checks' compiler cache, imported before the thread
+    from torch._inductor.cpu_vec_isa import pick_vec_isa
+
     def check() -> None:
         try:
-            from torch._inductor.cpu_vec_isa import pick_vec_isa
-
             pick_vec_isa()  # cached for the process: the compile that follows asks again and gets the answer
         except Exception as error:  # noqa: BLE001 - the compile itself meets and reports whatever failed here
             log.debug("inductor's vector-instruction checks, ahead of compiling: %s", error)

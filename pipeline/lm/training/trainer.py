@@ -77,11 +77,13 @@ class _Trainer(Trainer):
     collator pads), computed side by side (`pipeline.lm.training.parts`); the positions are drawn for the whole
     micro-batch first, so they are those of the uncut run.
 
-    With ``labelled_logits`` a training batch's loss is `labelled_loss` (the head at the labelled positions only)."""
+    With ``labelled_logits`` a training batch's loss is `labelled_loss` (the head at the labelled positions only),
+    except where the whole model is compiled (``torch_compile=full``: its compiled forward computes the loss)."""
 
     position_stretch: float = 1.0
     part_threads: PartThreads | None = None
     labelled_logits: bool = False
+    _warned_head: bool = False
     _draw: tuple[int, int] = (-1, 0)   # (global step, micro-batches drawn in it)
 
     def _with_positions(self, model, inputs):
@@ -97,9 +99,17 @@ class _Trainer(Trainer):
     def compute_loss(self, model, inputs, return_outputs=False, num_items_in_batch=None):
         inputs = self._with_positions(model, inputs)
         if (self.labelled_logits and model.training and not return_outputs and "labels" in inputs
-                and self.accelerator.num_processes == 1):
-            with self.accelerator.autocast():  # what the prepared model's own forward enters
-                return labelled_loss(self.accelerator.unwrap_model(model), inputs, num_items_in_batch)
+                and self.accelerator.num_processes == 1 and self.args.n_gpu <= 1 and not self.args.torch_compile
+                and self.label_smoother is None and self.compute_loss_func is None):
+            net = self.accelerator.unwrap_model(model)
+            if type(net).__name__ in PLAIN_HEAD_MODELS:
+                with self.accelerator.autocast():  # what the prepared model's own forward enters
+                    return labelled_loss(net, inputs, num_items_in_batch)
+            if not self._warned_head:
+                self._warned_head = True
+                log.warning("train.labelled_logits: %s is not one of %s (models whose logits are their head's "
+                            "output): its own forward computes the loss instead", type(net).__name__,
+                            ", ".join(PLAIN_HEAD_MODELS))
         return super().compute_loss(model, inputs, return_outputs=return_outputs, num_items_in_batch=num_items_in_batch)
 
     def training_step(self, model, inputs, num_items_in_batch=None):
@@ -121,6 +131,11 @@ class _Trainer(Trainer):
             log.info("resumed checkpoint: lm_head.weight is tied to the input embedding (stored once)")
             return
         super()._issue_warnings_after_load(load_result)
+
+
+# Causal LMs whose logits are their output head's plain output and whose loss is transformers' causal-LM loss
+# (no logit soft-capping or scaling after the head), for which `labelled_loss` computes what their forward does.
+PLAIN_HEAD_MODELS = ("LlamaForCausalLM", "SmolLM3ForCausalLM")
 
 
 def labelled_loss(model: PreTrainedModel, inputs: dict[str, torch.Tensor],
