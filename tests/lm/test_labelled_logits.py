@@ -1,33 +1,16 @@
 """The output head and loss at the labelled positions only (`TrainSettings.labelled_logits`)."""
-import random
 
 import pytest
 import torch
 
 from pipeline.lm.chat import IGNORE_INDEX, WORD_LEVEL_FORMAT
 from pipeline.lm.model_settings import ModelSettings
-from pipeline.lm.models import build_scratch_model, load_model
-from pipeline.lm.tokenizer import build_word_tokenizer
+from pipeline.lm.models import build_scratch_model
+from grid_conversations import TINY, data, trained  # noqa: F401 - data: a fixture
 from pipeline.lm.training.settings import SettingError, TrainSettings
 from pipeline.lm.training import trainer as trainer_module
 from pipeline.lm.training.trainer import finetune, labelled_loss
 
-TINY = dict(hidden_size=32, num_layers=2, num_heads=2, intermediate_size=64, max_length=512)
-
-
-def conversation(rng):
-    x, y = rng.randint(2, 6), rng.randint(2, 6)
-    thought = "\n".join(f"Step {k}:\n({rng.randint(0, x)}, {rng.randint(0, y)})\n{rng.choice(['up', 'cut'])}"
-                        for k in range(1, rng.randint(2, 7)))
-    return [{"from": "human", "value": f"Grid is from (0, 0) to ({x}, {y}). Goal: ({x}, {y})"},
-            {"from": "gpt", "value": f"Thought:\n{thought}\nPlan:\nup"}]
-
-
-@pytest.fixture(scope="module")
-def data():
-    rng = random.Random(0)
-    conversations = [conversation(rng) for _ in range(40)]
-    return conversations, build_word_tokenizer(t["value"] for c in conversations for t in c)
 
 
 def inputs_with_unlabelled_positions(vocab: int) -> dict:
@@ -71,7 +54,6 @@ def test_a_batch_without_labelled_positions_has_zero_loss_and_gradients(data):
 
 
 def test_training_with_labelled_logits_trains_what_the_full_head_trains(data, tmp_path, monkeypatch):
-    conversations, tokenizer = data
     calls = []
 
     def counted(*args, **kwargs):
@@ -83,10 +65,7 @@ def test_training_with_labelled_logits_trains_what_the_full_head_trains(data, tm
                     per_device_batch_size=4, torch_threads=2, optimizer="muon", position_stretch=2.0)
 
     def run(name, **extra):
-        model = build_scratch_model(tokenizer, ModelSettings(**TINY), seed=0)
-        result = finetune(model, tokenizer, WORD_LEVEL_FORMAT, conversations, TrainSettings(**settings, **extra),
-                          tmp_path / name)
-        return result, load_model(result.model_dir).state_dict()
+        return trained(data, tmp_path / name, **settings, **extra)
 
     full, f = run("full")
     assert calls == []

@@ -1,5 +1,4 @@
 """A batch cut into parts computed side by side by Python threads (pipeline/lm/training/parts.py)."""
-import random
 import threading
 
 import pytest
@@ -8,13 +7,12 @@ import torch
 from pipeline.lm.chat import WORD_LEVEL_FORMAT
 from pipeline.lm.model_settings import ModelSettings
 from pipeline.lm.models import build_scratch_model, load_model
-from pipeline.lm.tokenizer import build_word_tokenizer
+from grid_conversations import TINY, data, trained  # noqa: F401 - data: a fixture
 from pipeline.lm.training.parts import PartThreads, split_rows
 from pipeline.lm.training.settings import TrainSettings
 from pipeline.lm.training.trainer import finetune
 from pipeline.workflow.config import PYTHON_H, cxx_compiler
 
-TINY = dict(hidden_size=32, num_layers=2, num_heads=2, intermediate_size=64, max_length=512)
 
 
 def batch(lengths, width, pad=0):
@@ -78,32 +76,13 @@ def test_a_part_that_fails_raises_in_the_caller():
         pool.close()
 
 
-def conversation(rng):
-    x, y = rng.randint(2, 6), rng.randint(2, 6)
-    thought = "\n".join(f"Step {k}:\n({rng.randint(0, x)}, {rng.randint(0, y)})\n{rng.choice(['up', 'cut'])}"
-                        for k in range(1, rng.randint(2, 7)))
-    return [{"from": "human", "value": f"Grid is from (0, 0) to ({x}, {y}). Goal: ({x}, {y})"},
-            {"from": "gpt", "value": f"Thought:\n{thought}\nPlan:\nup"}]
-
-
-@pytest.fixture(scope="module")
-def data():
-    rng = random.Random(0)
-    conversations = [conversation(rng) for _ in range(40)]
-    return conversations, build_word_tokenizer(t["value"] for c in conversations for t in c)
-
-
 @pytest.mark.parametrize("stretch", [1.0, 2.0])
 def test_parts_train_what_the_whole_batch_trains_and_the_same_each_run(data, tmp_path, stretch):
-    conversations, tokenizer = data
     settings = dict(max_steps=6, report_to=(), logging_steps=1, save_steps=100, learning_rate=1e-2,
                     per_device_batch_size=4, torch_threads=2, optimizer="muon", position_stretch=stretch)
 
     def run(name, **extra):
-        model = build_scratch_model(tokenizer, ModelSettings(**TINY), seed=0)
-        result = finetune(model, tokenizer, WORD_LEVEL_FORMAT, conversations, TrainSettings(**settings, **extra),
-                          tmp_path / name)
-        return result, load_model(result.model_dir).state_dict()
+        return trained(data, tmp_path / name, **settings, **extra)
 
     whole, w = run("whole")
     parts, p = run("parts", batch_threads=2)
