@@ -145,13 +145,18 @@ def labelled_loss(model: PreTrainedModel, inputs: dict[str, torch.Tensor],
     ``num_items_in_batch``, or averaged over them), with the output head applied at the labelled positions alone:
     the CPU default trains on about two thirds of its positions, and at its vocabulary the head and the loss were
     about an eighth of a step (README, Speed). The same loss and gradients, rounded otherwise."""
-    labels = inputs["labels"]
-    hidden = model.base_model(**{k: v for k, v in inputs.items() if k != "labels"}).last_hidden_state
-    targets = labels[:, 1:]
+    logits, targets = head_at_labels(model, inputs)
+    loss = F.cross_entropy(logits.float(), targets, reduction="sum")
+    return loss / (num_items_in_batch if num_items_in_batch is not None else len(targets))
+
+
+def head_at_labels(model: PreTrainedModel, inputs: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+    """The logits at the positions whose next token is labelled (``labels`` beside the model's inputs), computed
+    from the base model's hidden states there alone, and those labels: ``(n, vocabulary)`` and ``(n,)``."""
+    targets = inputs["labels"][:, 1:]
     keep = targets != IGNORE_INDEX
-    logits = model.get_output_embeddings()(hidden[:, :-1][keep])
-    loss = F.cross_entropy(logits.float(), targets[keep], reduction="sum")
-    return loss / (num_items_in_batch if num_items_in_batch is not None else keep.sum())
+    hidden = model.base_model(**{k: v for k, v in inputs.items() if k != "labels"}).last_hidden_state
+    return model.get_output_embeddings()(hidden[:, :-1][keep]), targets[keep]
 
 
 class _PackingTrainer(_Trainer):
@@ -176,20 +181,20 @@ def token_accuracy(model: PreTrainedModel, dataset: ConversationDataset, pad_tok
     collate = RightPadCollator(pad_token_id)
     order = sorted(range(len(dataset)), key=lambda i: len(dataset[i]["input_ids"]))
     correct = total = 0
-    head, device = model.get_output_embeddings(), next(model.parameters()).device
+    device = next(model.parameters()).device
     for start in range(0, len(order), batch_size):
         batch = collate([dataset[i] for i in order[start:start + batch_size]])
-        input_ids = batch["input_ids"].to(device)
-        targets = batch["labels"][:, 1:].to(device)
-        keep = targets != IGNORE_INDEX
+        input_ids, labels = batch["input_ids"].to(device), batch["labels"].to(device)
         if sharded:
-            predictions = model(input_ids=input_ids).logits[:, :-1][keep].argmax(-1)
+            targets = labels[:, 1:]
+            keep = targets != IGNORE_INDEX
+            predictions, targets = model(input_ids=input_ids).logits[:, :-1][keep].argmax(-1), targets[keep]
         else:
             # Project only labelled positions: a full-vocabulary logits tensor would dwarf the batch.
-            hidden = model.base_model(input_ids=input_ids).last_hidden_state[:, :-1]
-            predictions = head(hidden[keep]).argmax(-1)
-        correct += (predictions == targets[keep]).sum().item()
-        total += keep.sum().item()
+            logits, targets = head_at_labels(model, {"input_ids": input_ids, "labels": labels})
+            predictions = logits.argmax(-1)
+        correct += (predictions == targets).sum().item()
+        total += len(targets)
     return correct / total if total else None
 
 def _checkpointing(enabled: bool) -> dict:
