@@ -82,7 +82,7 @@ class TrainSettings:
     # `OPTIMIZERS` (the same learning rate and weight decay for both); not with accelerate_config (FSDP).
     optimizer: str = field(default="adamw", metadata={"hash_if_set": True})
     # Muon's Newton-Schulz iterations in bf16 (as the reference implementation runs them) where training runs in
-    # bf16; fp32 otherwise. Only with optimizer=muon. It changes the numbers (README, Speed).
+    # bf16; fp32 otherwise. Off with any other optimizer. It changes the numbers (README, Speed).
     muon_bf16: bool = field(default=False, metadata={"hash_if_set": True})
     # Training conversations see randomized, stretched position ids (`batches.stretched_positions`; 1: plain
     # positions); decoding keeps plain ones. Not in the paper (README, "Extrapolation").
@@ -94,6 +94,10 @@ class TrainSettings:
     # The output head and the loss computed at the labelled (trained) positions only, not at every position: the
     # same loss and gradients, rounded otherwise (pipeline/lm/training/trainer.py: labelled_loss; README, Speed).
     labelled_logits: bool = field(default=False, metadata={"hash_if_set": True})
+    # Causal attention computed as two halves of its queries, the first against the first half of the keys only
+    # (a quarter of the scores never computed): the same attention, summed in other blocks. Eager attention of
+    # Llama-like models only; others keep theirs (pipeline/lm/training/attention.py; README, Speed).
+    attention_halves: bool = field(default=False, metadata={"hash_if_set": True})
 
     def __post_init__(self) -> None:
         self.report_to = [self.report_to] if isinstance(self.report_to, str) else list(self.report_to)
@@ -124,8 +128,8 @@ class TrainSettings:
         require(self.optimizer in OPTIMIZERS, "optimizer", self.optimizer, f"one of {', '.join(OPTIMIZERS)}")
         require(self.optimizer == "adamw" or self.accelerate_config is None, "optimizer", self.optimizer,
                 "adamw when accelerate_config is set (FSDP shards the matrices Muon orthogonalizes)")
-        require(self.optimizer == "muon" or not self.muon_bf16, "muon_bf16", self.muon_bf16,
-                "false unless optimizer=muon (it sets Muon's Newton-Schulz precision)")
+        if self.optimizer != "muon":  # Muon's precision: nothing to set without Muon (train=cpu sets it for Muon)
+            self.muon_bf16 = False
         require(self.position_stretch >= 1, "position_stretch", self.position_stretch,
                 "a number >= 1 (1: plain positions)")
         require(isinstance(self.batch_threads, int) and 1 <= self.batch_threads <= MAX_BATCH_PARTS,
