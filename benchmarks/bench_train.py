@@ -33,8 +33,6 @@ conversations through `pipeline.lm.training.trainer.finetune`, with the default 
   computed side by side by Python threads): what the parts buy.
 - ``default, logits everywhere``: the default with ``labelled_logits`` false (when the default applies the output
   head and the loss at the labelled positions only): what that buys.
-- ``default, full attention``: the default with ``attention_halves`` false (when the default computes each causal
-  attention as two halves of its queries): what the halves buy.
 
 Each run prints two rates: over all its steps (compiling included), and in steady state: the median rate of
 the optimizer steps themselves (forward, backward and update: no batch loading or logging) after the first
@@ -182,7 +180,7 @@ def main() -> None:
     parser.add_argument("--only", choices=("padded-fp32", "packed-fp32", "packed-bf16", "default", "when-faster",
                                            "default, paper prompt", "other-optimizer", "muon-bf16",
                                            "other-attention", "plain-positions", "other-newlines", "whole-batches",
-                                           "all-logits", "full-attention"),
+                                           "all-logits"),
                         action="append", help="run only these (repeatable)")
     args = parser.parse_args()
     if not 0 <= args.skip < args.steps:
@@ -258,8 +256,7 @@ def main() -> None:
         runs[attention_run] = runs[default]
         attention[attention_run] = other_attention
     # The default's family (every run named "default...") trains as --train sets each switch below; the padded and
-    # packed baselines keep plain positions, whole batches, logits everywhere and whole attention. Each run below
-    # changes one switch.
+    # packed baselines keep plain positions, whole batches and logits everywhere. Each run below changes one switch.
     # What stretched positions cost (train.position_stretch; they send the attention mask): the default without.
     stretch: dict[str, float] = {}  # name: position_stretch where it is not the family's
     plain_positions = f"{default}, plain positions"
@@ -283,12 +280,6 @@ def main() -> None:
     if scope != "none" and train_cfg.labelled_logits:
         runs[all_logits] = runs[default]
         labelled[all_logits] = False
-    # What causal attention in two halves of its queries buys (train.attention_halves): the default attending whole.
-    halves: dict[str, bool] = {}  # name: attention_halves where it is not the family's
-    full_attention = f"{default}, full attention"
-    if scope != "none" and train_cfg.attention_halves:
-        runs[full_attention] = runs[default]
-        halves[full_attention] = False
 
     def switch(name: str, overrides: dict, family_value, baseline_value):
         """A run's value of one switch: its own, else the family's (--train) or the baselines'."""
@@ -297,7 +288,7 @@ def main() -> None:
     selected = {"default": default, "when-faster": when_faster, "other-optimizer": other_optimizer,
                 "muon-bf16": muon_other, "other-attention": attention_run, "plain-positions": plain_positions,
                 "other-newlines": newlines_run, "whole-batches": whole_batches,
-                "all-logits": all_logits, "full-attention": full_attention}
+                "all-logits": all_logits}
     wanted = {selected.get(name, name) for name in args.only or runs}
     rounds: dict[str, list[tuple[float, float]]] = {}  # name: (overall, steady) real tokens/s of each round
     per_token: dict[str, float] = {}  # name: useful training FLOPs per real token of its conversations
@@ -326,7 +317,6 @@ def main() -> None:
             position_stretch=switch(name, stretch, train_cfg.position_stretch, 1.0),
             batch_threads=switch(name, parts, train_cfg.batch_threads, 1),
             labelled_logits=switch(name, labelled, train_cfg.labelled_logits, False),
-            attention_halves=switch(name, halves, train_cfg.attention_halves, False),
         )
         clock = StepClock()
         with tempfile.TemporaryDirectory() as out:

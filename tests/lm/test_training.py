@@ -533,3 +533,8 @@ def test_the_compilers_checks_run_ahead_in_a_thread_that_compiling_waits_for(mon
         entered = time.perf_counter()
     assert [name for name, _ in ran] == ["inductor-isa-checks"]
     assert entered >= ran[0][1]  # compiling began only after the checks
+
+
+def test_muon_precision_is_off_without_muon():
+    assert TrainSettings(optimizer="muon", muon_bf16=True).muon_bf16
+    assert not TrainSettings(optimizer="adamw", muon_bf16=True).muon_bf16

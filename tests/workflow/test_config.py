@@ -305,7 +305,7 @@ def test_settings_added_since_keep_the_step_hashes_of_finished_runs(monkeypatch)
     old_default = ("data.train_deep=0", "train.optimizer=adamw", "train.bf16_when_faster=false", "model.numbers=whole",
                    "model.attn_implementation=sdpa", "train.position_stretch=1", "model.plan_form=moves",
                    "model.newlines=own", "train.batch_threads=1", "train.labelled_logits=false",
-                   "train.attention_halves=false", "train.muon_bf16=false")
+                   "train.muon_bf16=false")
     assert hashes("eval.n_valid=0", *old_default, toy=False) == {
         "data-build": "9084abe767f5f3cf", "finetune": "9f74feb50b9e71d8", "eval": "7a5f1b9983e9f635"}
     assert hashes(*old_default, toy=False)["eval"] != "7a5f1b9983e9f635"
@@ -329,7 +329,6 @@ def test_settings_added_since_keep_the_step_hashes_of_finished_runs(monkeypatch)
     assert hashes("data.mask_edge_labels=true", toy=True)["data-build"] != "128801358476e7a8"
     assert hashes("train.optimizer=muon", toy=True)["finetune"] != "2404019bf8a1b813"
     assert hashes("train.muon_bf16=false", toy=False)["finetune"] != new["finetune"]
-    assert hashes("train.attention_halves=false", toy=False)["finetune"] != new["finetune"]
     # Stretched positions (the CPU default since) train other numbers: a new step; plain positions' runs stay reusable.
     assert hashes("train.position_stretch=1", toy=False)["finetune"] != new["finetune"]
     assert hashes("train.position_stretch=1", toy=False)["data-build"] == new["data-build"]

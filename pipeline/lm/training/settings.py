@@ -94,10 +94,6 @@ class TrainSettings:
     # The output head and the loss computed at the labelled (trained) positions only, not at every position: the
     # same loss and gradients, rounded otherwise (pipeline/lm/training/trainer.py: labelled_loss; README, Speed).
     labelled_logits: bool = field(default=False, metadata={"hash_if_set": True})
-    # Causal attention computed as two halves of its queries, the first against the first half of the keys only
-    # (a quarter of the scores never computed): the same attention, summed in other blocks. Eager attention of
-    # Llama-like models only; others keep theirs (pipeline/lm/training/attention.py; README, Speed).
-    attention_halves: bool = field(default=False, metadata={"hash_if_set": True})
 
     def __post_init__(self) -> None:
         self.report_to = [self.report_to] if isinstance(self.report_to, str) else list(self.report_to)

@@ -26,7 +26,6 @@ from transformers.trainer_utils import PREFIX_CHECKPOINT_DIR, get_last_checkpoin
 
 from pipeline.lm.chat import IGNORE_INDEX, ChatFormat
 from pipeline.lm.models import ComposedRows, save_chat_format
-from pipeline.lm.training.attention import attention_halves
 from pipeline.lm.training.batches import (
     ConversationDataset, LengthGroupedBatches, RightPadCollator, split_eval, stretched_batch_positions,
     tokenize_conversations,
@@ -353,8 +352,7 @@ def _finetune(model, tokenizer, fmt, conversations, settings, output_dir, seed, 
         log.info("resuming from %s", resume)
     started = time.perf_counter()
     try:
-        with attention_halves(model, settings.attention_halves), \
-                compiled_blocks(model, settings.torch_compile, release_gil=side_by_side), \
+        with compiled_blocks(model, settings.torch_compile, release_gil=side_by_side), \
                 composed_rows(trainer, tokenizer):
             output = trainer.train(resume_from_checkpoint=resume)
     finally:
