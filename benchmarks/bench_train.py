@@ -16,8 +16,9 @@ conversations through `pipeline.lm.training.trainer.finetune`, with the default 
   when that picks another precision on this machine.
 - ``default, <optimizer>``: the default with the other ``optimizer`` (``adamw`` or ``muon``,
   `pipeline.lm.training.optim`): what Muon's step costs against AdamW's.
-- ``default, Muon's Newton-Schulz in bf16``: the default with ``muon_bf16`` (when the default trains with Muon in
-  bf16): what Muon's iterations cost in fp32 against bf16.
+- ``default, Muon's Newton-Schulz in <fp32|bf16>``: the default with the other ``muon_bf16`` (when the default
+  trains with Muon in bf16; the CPU default's iterations are bf16, so this run's are fp32): what Muon's iterations
+  cost in one precision against the other.
 - ``default, <kernel> attention``: the default with the other of ``sdpa`` and ``eager`` for
   ``model.attn_implementation`` (the same attention, computed by torch's fused kernel or as two matmuls and a
   softmax that the compiler fuses): what the attention kernel costs at these short sequences.

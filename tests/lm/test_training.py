@@ -535,6 +535,7 @@ def test_the_compilers_checks_run_ahead_in_a_thread_that_compiling_waits_for(mon
     assert entered >= ran[0][1]  # compiling began only after the checks
 
 
-def test_muon_precision_is_off_without_muon():
-    assert TrainSettings(optimizer="muon", muon_bf16=True).muon_bf16
-    assert not TrainSettings(optimizer="adamw", muon_bf16=True).muon_bf16
+def test_muon_precision_is_off_without_muon_or_bf16():
+    assert TrainSettings(optimizer="muon", bf16=True, muon_bf16=True).muon_bf16
+    assert not TrainSettings(optimizer="adamw", bf16=True, muon_bf16=True).muon_bf16
+    assert not TrainSettings(optimizer="muon", bf16=False, muon_bf16=True).muon_bf16

@@ -82,7 +82,7 @@ class TrainSettings:
     # `OPTIMIZERS` (the same learning rate and weight decay for both); not with accelerate_config (FSDP).
     optimizer: str = field(default="adamw", metadata={"hash_if_set": True})
     # Muon's Newton-Schulz iterations in bf16 (as the reference implementation runs them) where training runs in
-    # bf16; fp32 otherwise. Off with any other optimizer. It changes the numbers (README, Speed).
+    # bf16; fp32 otherwise. Off with any other optimizer or without bf16. It changes the numbers (README, Speed).
     muon_bf16: bool = field(default=False, metadata={"hash_if_set": True})
     # Training conversations see randomized, stretched position ids (`batches.stretched_positions`; 1: plain
     # positions); decoding keeps plain ones. Not in the paper (README, "Extrapolation").
@@ -124,7 +124,7 @@ class TrainSettings:
         require(self.optimizer in OPTIMIZERS, "optimizer", self.optimizer, f"one of {', '.join(OPTIMIZERS)}")
         require(self.optimizer == "adamw" or self.accelerate_config is None, "optimizer", self.optimizer,
                 "adamw when accelerate_config is set (FSDP shards the matrices Muon orthogonalizes)")
-        if self.optimizer != "muon":  # Muon's precision: nothing to set without Muon (train=cpu sets it for Muon)
+        if self.optimizer != "muon" or not self.bf16:  # nothing to set without Muon or bf16 (train=cpu sets it)
             self.muon_bf16 = False
         require(self.position_stretch >= 1, "position_stretch", self.position_stretch,
                 "a number >= 1 (1: plain positions)")
