@@ -142,3 +142,32 @@ def test_muon_steps_the_same_on_one_thread_as_batched_on_two(model, ns_dtype):
     assert all(moved)
     for one, two in zip(*results):
         torch.testing.assert_close(one, two)
+
+
+def test_muons_stacked_momentum_is_saved_per_parameter_and_a_reload_steps_as_if_never_stopped(model):
+    """The momentum lives in one stack per shape; its slices are the state entries a checkpoint saves, and a loaded
+    state (separate tensors) is stacked again: the steps after a reload are those of an uninterrupted run, bit for bit."""
+    def grads(m, step):
+        generator = torch.Generator().manual_seed(step)
+        for p in m.parameters():
+            p.grad = torch.randn(p.shape, generator=generator)
+
+    straight, resumed = copy.deepcopy(model), copy.deepcopy(model)
+    opt = MuonAdamW(muon_groups(straight), lr=1e-2)
+    for step in range(4):
+        grads(straight, step)
+        opt.step()
+    first = MuonAdamW(muon_groups(resumed), lr=1e-2)
+    for step in range(2):
+        grads(resumed, step)
+        first.step()
+    saved = copy.deepcopy(first.state_dict())
+    for p in muon_groups(resumed)[0]["params"]:
+        assert first.state[p]["momentum_buffer"].shape == p.shape
+    again = MuonAdamW(muon_groups(resumed), lr=1e-2)
+    again.load_state_dict(saved)
+    for step in range(2, 4):
+        grads(resumed, step)
+        again.step()
+    for a, b in zip(straight.parameters(), resumed.parameters()):
+        assert torch.equal(a, b)

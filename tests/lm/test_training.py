@@ -539,3 +539,30 @@ def test_muon_precision_is_off_without_muon_or_bf16():
     assert TrainSettings(optimizer="muon", bf16=True, muon_bf16=True).muon_bf16
     assert not TrainSettings(optimizer="adamw", bf16=True, muon_bf16=True).muon_bf16
     assert not TrainSettings(optimizer="muon", bf16=False, muon_bf16=True).muon_bf16
+
+
+@pytest.mark.parametrize("scale", [1e-3, 10.0, float("nan")])  # below max_grad_norm, above it, and a nan gradient
+def test_gradient_clipping_is_torchs_bit_for_bit(scale):
+    """The trainer skips multiplying by a clip coefficient of exactly 1; otherwise it is torch's clip_grad_norm_."""
+    from types import SimpleNamespace
+
+    from accelerate.utils import DistributedType
+
+    from pipeline.lm.training.trainer import _Trainer
+
+    def model(seed):
+        net = torch.nn.Sequential(torch.nn.Linear(8, 16), torch.nn.Linear(16, 4))
+        generator = torch.Generator().manual_seed(seed)
+        for p in net.parameters():
+            p.grad = torch.randn(p.shape, generator=generator) * scale
+        return net
+
+    ours, theirs = model(0), model(0)
+    trainer = SimpleNamespace(accelerator=SimpleNamespace(distributed_type=DistributedType.NO, scaler=None),
+                              args=SimpleNamespace(max_grad_norm=1.0, device=torch.device("cpu")),
+                              _has_mixed_mesh_grads=lambda m: False)
+    norm = _Trainer._clip_grad_norm(trainer, ours)
+    expected = torch.nn.utils.clip_grad_norm_(theirs.parameters(), 1.0)
+    torch.testing.assert_close(norm, expected, equal_nan=True)
+    for a, b in zip(ours.parameters(), theirs.parameters()):
+        torch.testing.assert_close(a.grad, b.grad, rtol=0, atol=0, equal_nan=True)

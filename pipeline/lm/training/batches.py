@@ -116,19 +116,17 @@ class RightPadCollator:
                              "tokenizer without a pad token gets one from pipeline.lm.models.with_pad_token")
 
     def __call__(self, features: list[dict]) -> dict[str, torch.Tensor]:
-        width = max(len(f["input_ids"]) for f in features)
-        width = -(-width // self.pad_to_multiple_of) * self.pad_to_multiple_of
-        input_ids = torch.full((len(features), width), self.pad_token_id, dtype=torch.long)
-        labels = torch.full((len(features), width), IGNORE_INDEX, dtype=torch.long)
-        mask = torch.zeros((len(features), width), dtype=torch.long)
-        for row, f in enumerate(features):
-            n = len(f["input_ids"])
-            input_ids[row, :n] = torch.tensor(f["input_ids"])
-            labels[row, :n] = torch.tensor(f["labels"])
-            mask[row, :n] = 1
+        lengths = [len(f["input_ids"]) for f in features]
+        width = -(-max(lengths) // self.pad_to_multiple_of) * self.pad_to_multiple_of
+        # Each tensor from one padded list of lists: one call instead of one a row (a step's batch is built on the
+        # training loop's thread, between steps).
+        input_ids = torch.tensor([f["input_ids"] + [self.pad_token_id] * (width - n) for f, n in zip(features, lengths)],
+                                 dtype=torch.long)
+        labels = torch.tensor([f["labels"] + [IGNORE_INDEX] * (width - n) for f, n in zip(features, lengths)],
+                              dtype=torch.long)
         batch = {"input_ids": input_ids, "labels": labels}
         if self.attention_mask:
-            batch["attention_mask"] = mask
+            batch["attention_mask"] = (torch.arange(width) < torch.tensor(lengths)[:, None]).long()
         return batch
 
 

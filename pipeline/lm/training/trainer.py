@@ -22,6 +22,7 @@ import torch
 import torch.nn.functional as F
 from transformers import PreTrainedModel, PreTrainedTokenizerBase, Trainer, TrainerCallback, TrainingArguments
 from transformers.trainer_callback import ProgressCallback
+from accelerate.utils import DistributedType
 from transformers.trainer_utils import PREFIX_CHECKPOINT_DIR, get_last_checkpoint
 
 from pipeline.lm.chat import IGNORE_INDEX, ChatFormat
@@ -85,6 +86,7 @@ class _Trainer(Trainer):
     labelled_logits: bool = False
     _warned_head: bool = False
     _draw: tuple[int, int] = (-1, 0)   # (global step, micro-batches drawn in it)
+    _counted: tuple | None = None     # (model, its non-embedding parameters): `floating_point_ops`
 
     def _with_positions(self, model, inputs):
         if self.position_stretch > 1 and model.training and "position_ids" not in inputs:
@@ -123,6 +125,27 @@ class _Trainer(Trainer):
         calls = [functools.partial(step, model, part, num_items_in_batch) for part in parts]
         losses = self.part_threads.run(calls)
         return torch.stack(losses).sum()
+
+    def floating_point_ops(self, inputs) -> int:
+        """Trainer's count (6 x the batch's tokens x the non-embedding parameters), the parameters counted once, not
+        at every step (a walk over the model's modules)."""
+        if self._counted is None or self._counted[0] is not self.model:
+            self._counted = (self.model, super().floating_point_ops({"input_ids": torch.empty(1, 1)}) // 6)
+        ids = inputs.get(getattr(self.model, "main_input_name", "input_ids"))
+        return 6 * ids.numel() * self._counted[1] if ids is not None else super().floating_point_ops(inputs)
+
+    def _clip_grad_norm(self, model):
+        """What Trainer's clipping does (the gradients' total norm, and the gradients scaled to ``max_grad_norm``
+        where it is larger), without multiplying every gradient by a coefficient of exactly 1 where it is not (most
+        steps), on one process without a gradient scaler; elsewhere Trainer's own."""
+        if (self.accelerator.distributed_type != DistributedType.NO or self.accelerator.scaler is not None
+                or self.args.device.type != "cpu" or self._has_mixed_mesh_grads(model)):
+            return super()._clip_grad_norm(model)
+        parameters = [p for p in model.parameters() if p.grad is not None]
+        total = torch.nn.utils.get_total_norm([p.grad for p in parameters])
+        if not total + 1e-6 <= self.args.max_grad_norm:  # torch's coefficient max_norm / (total + 1e-6): below 1 or nan
+            torch.nn.utils.clip_grads_with_norm_(parameters, self.args.max_grad_norm, total)
+        return total
 
     def _issue_warnings_after_load(self, load_result) -> None:
         tied = getattr(self.model.config, "tie_word_embeddings", False)
