@@ -135,14 +135,14 @@ class _Trainer(Trainer):
         return 6 * ids.numel() * self._counted[1] if ids is not None else super().floating_point_ops(inputs)
 
     def _clip_grad_norm(self, model):
-        """What Trainer's clipping does (the gradients' total norm, and the gradients scaled to ``max_grad_norm``
-        where it is larger), without multiplying every gradient by a coefficient of exactly 1 where it is not (most
-        steps), on one process without a gradient scaler; elsewhere Trainer's own."""
+        """What Trainer's clipping does (accelerate's total norm of the gradients, and the gradients scaled to
+        ``max_grad_norm`` where it is larger), without multiplying every gradient by a coefficient of exactly 1 where
+        it is not (most steps): on one process on a CPU without a gradient scaler; elsewhere Trainer's own."""
         if (self.accelerator.distributed_type != DistributedType.NO or self.accelerator.scaler is not None
                 or self.args.device.type != "cpu" or self._has_mixed_mesh_grads(model)):
             return super()._clip_grad_norm(model)
         parameters = [p for p in model.parameters() if p.grad is not None]
-        total = torch.nn.utils.get_total_norm([p.grad for p in parameters])
+        total = self.accelerator.clip_grad_norm_(parameters, float("inf"))  # the norm alone, computed as accelerate does
         if not total + 1e-6 <= self.args.max_grad_norm:  # torch's coefficient max_norm / (total + 1e-6): below 1 or nan
             torch.nn.utils.clip_grads_with_norm_(parameters, self.args.max_grad_norm, total)
         return total
