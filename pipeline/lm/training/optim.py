@@ -11,13 +11,13 @@ and weight decay tuned for AdamW carry over unchanged. The AdamW part uses Train
 The Newton-Schulz iterations run in fp32, or in bf16 as the reference implementation runs them (``ns_dtype``;
 `TrainSettings.muon_bf16`): where training picks bf16, a CPU's bf16 matmuls measured 2.2x to 2.8x its fp32
 ones. Each iteration's sums are fused into its matmuls (``addmm``: alpha * A @ B + beta * C in one kernel); in
-fp32 a matrix at least twice as wide as tall (or tall as wide) runs its iterations on its Gram matrix
-(`_through_gram`); a tall matrix is iterated as it lies (its Gram matrix on the right), never copied transposed.
-The matrices of one shape are stacked once a step: their gradients in one copy, their momentum kept as one stack
-(each parameter's state entry a slice of it), so the momentum's element-wise work is a few kernels over the stack;
-on more than one thread they are orthogonalized together, as one batch of matmuls (the same numbers, fewer and
-larger kernels; on one thread the batch measured slower, so each matrix goes alone there). The rest of the
-element-wise work (weight decay, the AdamW moments) runs as torch's multi-tensor (``_foreach``) kernels.
+fp32 a matrix at least twice as wide as tall runs its iterations on its Gram matrix (`_through_gram`). The
+matrices of one shape, a tall one counted as its transpose, are stacked once a step: their gradients in one
+copy, their momentum kept as one stack (each parameter's state entry a slice of it), so the momentum's
+element-wise work is a few kernels over the stack, with the same numbers. On more than one thread they are
+orthogonalized together, as one batch of matmuls (the same numbers, fewer and larger kernels; on one thread the
+batch measured slower, so each matrix goes alone there). The rest of the element-wise work (weight decay, the
+AdamW moments) runs as torch's multi-tensor (``_foreach``) kernels: one call for a list of tensors.
 """
 
 from __future__ import annotations
@@ -43,26 +43,22 @@ def orthogonalized(update: torch.Tensor, steps: int = 5, dtype: torch.dtype = to
         return orthogonalized(update.flatten(0, -3), steps, dtype).unflatten(0, update.shape[:-2])
     a, b, c = _NS_COEFFICIENTS
     x = update.to(dtype)
-    # A tall matrix is iterated as it lies, with its Gram matrix x^T x on the right: the transpose of the wide
-    # matrix's iteration, so the same map, without a transposed (strided) copy of the matrix or of its result.
     tall = x.size(-2) > x.size(-1)
+    if tall:
+        x = x.mT
     x = x / (torch.linalg.vector_norm(x, dim=(-2, -1), keepdim=True) + 1e-7)
     addmm = torch.baddbmm if x.ndim == 3 else torch.addmm
-    short, long = sorted(x.shape[-2:])
-    if steps > 0 and long >= 2 * short and torch.finfo(dtype).bits >= 32:
-        return _through_gram(x, steps, addmm, tall)
-    for _ in range(steps):
-        # x <- a x + (b gram + c gram @ gram) @ x (x @ (...) when tall), each sum fused into its matmul
-        if tall:
-            gram = x.mT @ x
-            x = addmm(x, x, addmm(gram, gram, gram, beta=b, alpha=c), beta=a)
-        else:
+    if steps > 0 and x.size(-1) >= 2 * x.size(-2) and torch.finfo(dtype).bits >= 32:
+        x = _through_gram(x, steps, addmm)
+    else:
+        for _ in range(steps):
             gram = x @ x.mT
+            # x <- a x + (b gram + c gram @ gram) @ x, each sum fused into its matmul
             x = addmm(x, addmm(gram, gram, gram, beta=b, alpha=c), x, beta=a)
-    return x
+    return x.mT if tall else x
 
 
-def _through_gram(x: torch.Tensor, steps: int, addmm, tall: bool = False) -> torch.Tensor:
+def _through_gram(x: torch.Tensor, steps: int, addmm) -> torch.Tensor:
     """The Newton-Schulz iterations of a wide ``x`` (m rows, n >= 2m columns) carried out on its m x m Gram matrix
     G = x x^T. Each iteration multiplies x on the left by P = a I + b G + c G^2, so the result is Q x with Q the
     product of the P's, and the next G is P G P = P^2 G (P is a polynomial in G: they commute). The same map in
@@ -70,18 +66,17 @@ def _through_gram(x: torch.Tensor, steps: int, addmm, tall: bool = False) -> tor
     the CPU default); below n = 1.5m the direct iterations are cheaper, hence the 2:1 threshold. The rounding
     differs: against fp64, 1e-6 relative on random matrices and 1e-4 to 4e-4 on nearly low-rank ones (as momentum
     is) in fp32, against 1e-6 and 2e-5 directly; bf16 would lose far more (the Gram matrix squares the condition
-    number), so bf16 iterations go directly. A ``tall`` x (n >= 2m rows, m columns) is the transpose: G = x^T x, and
-    the result x Q."""
+    number), so bf16 iterations go directly."""
     a, b, c = _NS_COEFFICIENTS
-    gram = x.mT @ x if tall else x @ x.mT
+    gram = x @ x.mT
     scaled_eye = torch.eye(gram.size(-1), dtype=gram.dtype, device=gram.device).mul_(a).expand_as(gram)
     product = None
     for i in range(steps):
         p = addmm(torch.add(scaled_eye, gram, alpha=b), gram, gram, alpha=c)  # a I + b G + c G^2
-        product = p if product is None else (product @ p if tall else p @ product)
+        product = p if product is None else p @ product
         if i < steps - 1:
             gram = p @ (p @ gram)
-    return x @ product if tall else product @ x
+    return product @ x
 
 
 class MuonAdamW(torch.optim.Optimizer):
@@ -121,28 +116,30 @@ class MuonAdamW(torch.optim.Optimizer):
         mu, together = group["momentum"], torch.get_num_threads() > 1
         for indices in _same_shapes(params):
             ps = [params[i] for i in indices]
-            # One stacked copy of the gradients and the momentum kept stacked: the element-wise work is a few kernels
-            # over the stack instead of a few for each matrix (the same numbers).
-            updates = torch.stack([p.grad for p in ps])
-            buffers = self._stacked(ps, "momentum_buffer")
+            tall = [p.size(0) > p.size(1) for p in ps]
+            # The gradients of one shape in one stacked copy (tall ones as their transposes) and the momentum kept as
+            # one stack: the element-wise work is a few kernels over the stack instead of a few for each matrix.
+            updates = torch.stack([p.grad.mT if t else p.grad for p, t in zip(ps, tall)])
+            buffers = self._stacked(ps, tall, "momentum_buffer")
             buffers.mul_(mu).add_(updates)
             updates.add_(buffers, alpha=mu)  # Nesterov: the gradient plus mu times the new momentum
-            if together or len(ps) == 1:
-                batch = orthogonalized(updates, dtype=self.ns_dtype)
-            else:  # one thread: each matrix alone (the batch measured slower there)
-                batch = torch.stack([orthogonalized(u, dtype=self.ns_dtype) for u in updates])
+            if together and len(ps) > 1:  # one batch of matmuls
+                batch = list(orthogonalized(updates, dtype=self.ns_dtype))
+            else:  # each matrix alone, as it lies (the batch measured slower on one thread)
+                batch = [orthogonalized(u.mT.contiguous(), dtype=self.ns_dtype).mT if t else
+                         orthogonalized(u, dtype=self.ns_dtype) for u, t in zip(updates, tall)]
             size = -group["lr"] * 0.2 * math.sqrt(max(ps[0].shape))
-            torch._foreach_add_(ps, list(batch.to(ps[0].dtype)), alpha=size)
+            torch._foreach_add_(ps, [(u.mT if t else u).to(p.dtype) for p, u, t in zip(ps, batch, tall)], alpha=size)
 
-    def _stacked(self, ps: list[torch.Tensor], key: str) -> torch.Tensor:
-        """The state ``key`` of the same-shaped ``ps`` as one stacked tensor whose slices are the per-parameter state
-        entries (what `state_dict` saves and `load_state_dict` restores). Built from those entries (zeros where there
-        is none) whenever they are not its slices: at the first step, and after a load."""
+    def _stacked(self, ps: list[torch.Tensor], tall: list[bool], key: str) -> torch.Tensor:
+        """The state ``key`` of same-shaped ``ps`` (tall ones transposed) as one stacked tensor whose slices are the
+        per-parameter state entries (what `state_dict` saves and `load_state_dict` restores). Built from those
+        entries (zeros where there is none) whenever they are not its slices: at the first step, and after a load."""
         stack, views = self._stacks.get((key, *map(id, ps)), (None, ()))
         if stack is None or any(self.state[p].get(key) is not v for p, v in zip(ps, views)):
-            entries = [self.state[p].get(key) for p in ps]
-            stack = torch.stack([torch.zeros_like(p) if e is None else e for p, e in zip(ps, entries)])
-            views = list(stack)
+            entries = [torch.zeros_like(p) if self.state[p].get(key) is None else self.state[p][key] for p in ps]
+            stack = torch.stack([e.mT if t else e for e, t in zip(entries, tall)])
+            views = [v.mT if t else v for v, t in zip(stack, tall)]
             for p, v in zip(ps, views):
                 self.state[p][key] = v
             self._stacks[(key, *map(id, ps))] = (stack, views)
@@ -171,10 +168,11 @@ class MuonAdamW(torch.optim.Optimizer):
 
 
 def _same_shapes(params: list[torch.Tensor]) -> list[list[int]]:
-    """The indices of ``params`` grouped by shape, in the order each shape first appears."""
+    """The indices of ``params`` grouped by shape, a tall matrix counted as its transpose (rows and columns
+    sorted), in the order each shape first appears."""
     groups: dict[tuple, list[int]] = {}
     for i, p in enumerate(params):
-        groups.setdefault(tuple(p.shape), []).append(i)
+        groups.setdefault(tuple(sorted(p.shape)), []).append(i)
     return list(groups.values())
 
 
