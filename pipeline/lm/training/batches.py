@@ -120,9 +120,10 @@ class RightPadCollator:
         width = -(-max(lengths) // self.pad_to_multiple_of) * self.pad_to_multiple_of
         # Each tensor from one padded list of lists: one call instead of one a row (a step's batch is built on the
         # training loop's thread, between steps).
-        input_ids = torch.tensor([f["input_ids"] + [self.pad_token_id] * (width - n) for f, n in zip(features, lengths)],
+        pad = self.pad_token_id
+        input_ids = torch.tensor([[*f["input_ids"], *[pad] * (width - n)] for f, n in zip(features, lengths)],
                                  dtype=torch.long)
-        labels = torch.tensor([f["labels"] + [IGNORE_INDEX] * (width - n) for f, n in zip(features, lengths)],
+        labels = torch.tensor([[*f["labels"], *[IGNORE_INDEX] * (width - n)] for f, n in zip(features, lengths)],
                               dtype=torch.long)
         batch = {"input_ids": input_ids, "labels": labels}
         if self.attention_mask:

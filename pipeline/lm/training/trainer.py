@@ -20,9 +20,9 @@ from typing import Sequence
 
 import torch
 import torch.nn.functional as F
+from accelerate.utils import DistributedType
 from transformers import PreTrainedModel, PreTrainedTokenizerBase, Trainer, TrainerCallback, TrainingArguments
 from transformers.trainer_callback import ProgressCallback
-from accelerate.utils import DistributedType
 from transformers.trainer_utils import PREFIX_CHECKPOINT_DIR, get_last_checkpoint
 
 from pipeline.lm.chat import IGNORE_INDEX, ChatFormat
@@ -129,10 +129,12 @@ class _Trainer(Trainer):
     def floating_point_ops(self, inputs) -> int:
         """Trainer's count (6 x the batch's tokens x the non-embedding parameters), the parameters counted once, not
         at every step (a walk over the model's modules)."""
+        main = getattr(self.model, "main_input_name", "input_ids")
+        if main not in inputs or not hasattr(self.model, "num_parameters"):
+            return super().floating_point_ops(inputs)
         if self._counted is None or self._counted[0] is not self.model:
-            self._counted = (self.model, super().floating_point_ops({"input_ids": torch.empty(1, 1)}) // 6)
-        ids = inputs.get(getattr(self.model, "main_input_name", "input_ids"))
-        return 6 * ids.numel() * self._counted[1] if ids is not None else super().floating_point_ops(inputs)
+            self._counted = (self.model, self.model.num_parameters(exclude_embeddings=True))
+        return 6 * inputs[main].numel() * self._counted[1]
 
     def _clip_grad_norm(self, model):
         """What Trainer's clipping does (accelerate's total norm of the gradients, and the gradients scaled to
@@ -142,7 +144,7 @@ class _Trainer(Trainer):
                 or self.args.device.type != "cpu" or self._has_mixed_mesh_grads(model)):
             return super()._clip_grad_norm(model)
         parameters = [p for p in model.parameters() if p.grad is not None]
-        total = self.accelerator.clip_grad_norm_(parameters, float("inf"))  # the norm alone, computed as accelerate does
+        total = self.accelerator.clip_grad_norm_(parameters, float("inf"))  # the norm alone, as accelerate takes it
         if not total + 1e-6 <= self.args.max_grad_norm:  # torch's coefficient max_norm / (total + 1e-6): below 1 or nan
             torch.nn.utils.clip_grads_with_norm_(parameters, self.args.max_grad_norm, total)
         return total
