@@ -7,6 +7,7 @@ from pipeline.lm.model_settings import ModelSettings
 from pipeline.lm.models import build_scratch_model
 from pipeline.lm.tokenizer import build_word_tokenizer
 from pipeline.lm.training.optim import MuonAdamW, build_optimizer, muon_groups, orthogonalized
+from pipeline.lm.training.parts import PartThreads
 
 
 @pytest.mark.parametrize("shape", [(16, 64), (64, 16), (32, 32)])
@@ -142,6 +143,37 @@ def test_muon_steps_the_same_on_one_thread_as_batched_on_two(model, ns_dtype):
     assert all(moved)
     for one, two in zip(*results):
         torch.testing.assert_close(one, two)
+
+
+@pytest.mark.parametrize("ns_dtype", [torch.float32, torch.bfloat16])
+def test_muon_shared_out_among_part_threads_steps_as_batched_on_two_threads_bit_for_bit(model, ns_dtype):
+    """With the trainer's part threads, each thread takes its share of every shape's matrices (batched as the
+    whole stack would be on two threads) while the caller runs on one thread: the same numbers, bit for bit. Odd
+    stacks too (three matrices of a shape, one of them tall: a share of one)."""
+    odd = [torch.randn(shape, generator=torch.Generator().manual_seed(i))
+           for i, shape in enumerate([(32, 32)] * 3 + [(64, 16), (16, 64), (16, 64)])]
+    results = []
+    threads = torch.get_num_threads()
+    workers = PartThreads(2, intra_op=1)
+    try:
+        for shared in (False, True):
+            torch.set_num_threads(1 if shared else 2)
+            copied = copy.deepcopy(model)
+            extra = [torch.nn.Parameter(m.clone()) for m in odd]
+            groups = muon_groups(copied) + [dict(params=extra, muon=True)]
+            opt = MuonAdamW(groups, lr=1e-2, weight_decay=0.1, ns_dtype=ns_dtype)
+            opt.side_by_side = workers if shared else None
+            for step in range(3):
+                generator = torch.Generator().manual_seed(step)
+                for p in [*copied.parameters(), *extra]:
+                    p.grad = torch.randn(p.shape, generator=generator)
+                opt.step()
+            results.append([p.detach().clone() for p in [*copied.parameters(), *extra]])
+    finally:
+        workers.close()
+        torch.set_num_threads(threads)
+    assert all(not torch.equal(a, b) for a, b in zip(results[0], [*model.parameters(), *odd]))
+    assert all(torch.equal(a, b) for a, b in zip(*results))
 
 
 def test_muons_stacked_momentum_is_saved_per_parameter_and_a_reload_steps_as_if_never_stopped(model):

@@ -3,6 +3,7 @@ import threading
 
 import pytest
 import torch
+from transformers import TrainerCallback
 
 from pipeline.lm.chat import WORD_LEVEL_FORMAT
 from pipeline.lm.model_settings import ModelSettings
@@ -76,6 +77,32 @@ def test_a_part_that_fails_raises_in_the_caller():
         pool.close()
 
 
+def test_map_runs_calls_side_by_side_in_order_and_raises_a_failure_after_all_finished():
+    pool = PartThreads(2)
+    try:
+        both = threading.Barrier(2, timeout=10)
+        ran = []
+
+        def call(value):
+            def run():
+                both.wait()  # passes only if the two calls run at the same time
+                ran.append(value)
+                return value, torch.get_num_threads()
+            return run
+
+        assert pool.map([call("a"), call("b")]) == [("a", 1), ("b", 1)]
+
+        def boom():
+            raise ValueError("share failed")
+        ran.clear()
+        with pytest.raises(ValueError, match="share failed"):
+            pool.map([boom, lambda: ran.append("other")])
+        assert ran == ["other"]  # the other call was not abandoned
+        assert pool.map([lambda: 3, lambda: 4]) == [3, 4]
+    finally:
+        pool.close()
+
+
 @pytest.mark.parametrize("stretch", [1.0, 2.0])
 def test_parts_train_what_the_whole_batch_trains_and_the_same_each_run(data, tmp_path, stretch):
     settings = dict(max_steps=6, report_to=(), logging_steps=1, save_steps=100, learning_rate=1e-2,
@@ -90,6 +117,24 @@ def test_parts_train_what_the_whole_batch_trains_and_the_same_each_run(data, tmp
     assert parts.final_loss == pytest.approx(whole.final_loss, rel=1e-4)  # the same batches, loss and update
     assert all(torch.allclose(w[k], p[k], atol=1e-4) for k in w)
     assert again.final_loss == parts.final_loss and all(torch.equal(p[k], q[k]) for k in p)  # deterministic
+
+
+def test_while_parts_train_the_caller_runs_on_one_thread_and_muons_step_on_the_part_threads(data, tmp_path):
+    conversations, tokenizer = data
+    seen = []
+
+    class Watch(TrainerCallback):
+        def on_step_end(self, args, state, control, optimizer=None, **kwargs):
+            workers = getattr(optimizer, "optimizer", optimizer).side_by_side  # accelerate wraps the optimizer
+            seen.append((torch.get_num_threads(), workers.parts if workers else None))
+
+    before = torch.get_num_threads()
+    model = build_scratch_model(tokenizer, ModelSettings(**TINY), seed=0)
+    finetune(model, tokenizer, WORD_LEVEL_FORMAT, conversations,
+             TrainSettings(max_steps=3, report_to=(), save_steps=100, per_device_batch_size=4, torch_threads=2,
+                           optimizer="muon", batch_threads=2), tmp_path / "run", callbacks=[Watch()])
+    assert seen == [(1, 2)] * 3
+    assert torch.get_num_threads() == before
 
 
 def test_batch_threads_beyond_two_are_refused_naming_the_value():

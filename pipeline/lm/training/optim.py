@@ -16,14 +16,18 @@ matrices of one shape, a tall one counted as its transpose, are stacked once a s
 copy, their momentum kept as one stack (each parameter's state entry a slice of it), so the momentum's
 element-wise work is a few kernels over the stack, with the same numbers. On more than one thread they are
 orthogonalized together, as one batch of matmuls (the same numbers, fewer and larger kernels; on one thread the
-batch measured slower, so each matrix goes alone there). The rest of the element-wise work (weight decay, the
-AdamW moments) runs as torch's multi-tensor (``_foreach``) kernels: one call for a list of tensors.
+batch measured slower, so each matrix goes alone there). With the trainer's part threads (`side_by_side`;
+`TrainSettings.batch_threads`) each thread takes its share of every shape's matrices, batched as on two threads:
+the same numbers, and the caller's own thread free to run on one intra-op thread. The rest of the element-wise
+work (weight decay, the AdamW moments) runs as torch's multi-tensor (``_foreach``) kernels: one call for a list of
+tensors.
 """
 
 from __future__ import annotations
 
+import functools
 import math
-from typing import Iterable
+from typing import Callable, Iterable, Protocol, Sequence
 
 import torch
 from torch import nn
@@ -79,6 +83,14 @@ def _through_gram(x: torch.Tensor, steps: int, addmm) -> torch.Tensor:
     return product @ x
 
 
+class SideBySide(Protocol):
+    """Worker threads, one intra-op thread each, that run calls side by side (`pipeline.lm.training.parts`)."""
+
+    parts: int
+
+    def map(self, calls: Sequence[Callable]) -> list: ...
+
+
 class MuonAdamW(torch.optim.Optimizer):
     """Muon for the parameter groups with ``muon=True``, AdamW for the others (see the module docstring)."""
 
@@ -87,6 +99,7 @@ class MuonAdamW(torch.optim.Optimizer):
         defaults = dict(lr=lr, weight_decay=weight_decay, momentum=momentum, betas=betas, eps=eps, muon=False)
         super().__init__(list(groups), defaults)
         self.ns_dtype = ns_dtype
+        self.side_by_side: SideBySide | None = None  # worker threads for Muon's step (the trainer's batch parts)
         self._stacks: dict[tuple, tuple[torch.Tensor, list[torch.Tensor]]] = {}
         for group in self.param_groups:
             if group["muon"]:
@@ -104,32 +117,57 @@ class MuonAdamW(torch.optim.Optimizer):
             live = [p for p in group["params"] if p.grad is not None]
             if not live:
                 continue
-            if group["weight_decay"]:
-                torch._foreach_mul_(live, 1 - group["lr"] * group["weight_decay"])
             if group["muon"]:
                 self._muon(live, group)
             else:
+                if group["weight_decay"]:
+                    torch._foreach_mul_(live, 1 - group["lr"] * group["weight_decay"])
                 self._adamw(live, group)
         return loss
 
     def _muon(self, params: list[torch.Tensor], group: dict) -> None:
-        mu, together = group["momentum"], torch.get_num_threads() > 1
+        stacks = []  # (parameters of one shape, which are tall, their momentum stack)
         for indices in _same_shapes(params):
             ps = [params[i] for i in indices]
             tall = [p.size(0) > p.size(1) for p in ps]
-            # The gradients of one shape in one stacked copy (tall ones as their transposes) and the momentum kept as
-            # one stack: the element-wise work is a few kernels over the stack instead of a few for each matrix.
-            updates = torch.stack([p.grad.mT if t else p.grad for p, t in zip(ps, tall)])
-            buffers = self._stacked(ps, tall, "momentum_buffer")
-            buffers.mul_(mu).add_(updates)
-            updates.add_(buffers, alpha=mu)  # Nesterov: the gradient plus mu times the new momentum
-            if together and len(ps) > 1:  # one batch of matmuls
-                batch = list(orthogonalized(updates, dtype=self.ns_dtype))
-            else:  # each matrix alone, as it lies (the batch measured slower on one thread)
-                batch = [orthogonalized(u.mT.contiguous(), dtype=self.ns_dtype).mT if t else
-                         orthogonalized(u, dtype=self.ns_dtype) for u, t in zip(updates, tall)]
-            size = -group["lr"] * 0.2 * math.sqrt(max(ps[0].shape))
-            torch._foreach_add_(ps, [(u.mT if t else u).to(p.dtype) for p, u, t in zip(ps, batch, tall)], alpha=size)
+            stacks.append((ps, tall, self._stacked(ps, tall, "momentum_buffer")))
+        workers = self.side_by_side
+        if workers is None or workers.parts < 2 or len(params) < 2:
+            together = torch.get_num_threads() > 1
+            for ps, tall, buffers in stacks:
+                self._muon_rows(ps, tall, buffers, group, batched=together and len(ps) > 1)
+            return
+        # Each worker thread takes its share of every stack's rows, batched as the whole stack would be on two
+        # threads: the same numbers (a batched matmul computes each matrix alone), computed side by side.
+        workers.map([functools.partial(self._muon_share, stacks, group, i, workers.parts)
+                     for i in range(workers.parts)])
+
+    @torch.no_grad()  # grad mode is per thread
+    def _muon_share(self, stacks: list, group: dict, share: int, shares: int) -> None:
+        for ps, tall, buffers in stacks:
+            start, stop = (round(i * len(ps) / shares) for i in (share, share + 1))
+            if stop > start:
+                self._muon_rows(ps[start:stop], tall[start:stop], buffers[start:stop], group, batched=len(ps) > 1)
+
+    def _muon_rows(self, ps: list[torch.Tensor], tall: list[bool], buffers: torch.Tensor, group: dict,
+                   batched: bool) -> None:
+        """Muon's step for same-shaped ``ps`` whose momentum is the stack ``buffers``; ``batched``: their updates
+        orthogonalized as one batch of matmuls (tall ones as their transposes), else each as it lies."""
+        if group["weight_decay"]:
+            torch._foreach_mul_(ps, 1 - group["lr"] * group["weight_decay"])
+        mu = group["momentum"]
+        # The gradients of one shape in one stacked copy (tall ones as their transposes) and the momentum kept as
+        # one stack: the element-wise work is a few kernels over the stack instead of a few for each matrix.
+        updates = torch.stack([p.grad.mT if t else p.grad for p, t in zip(ps, tall)])
+        buffers.mul_(mu).add_(updates)
+        updates.add_(buffers, alpha=mu)  # Nesterov: the gradient plus mu times the new momentum
+        if batched:
+            batch = list(orthogonalized(updates, dtype=self.ns_dtype))
+        else:  # each matrix alone, as it lies (the batch measured slower on one thread)
+            batch = [orthogonalized(u.mT.contiguous(), dtype=self.ns_dtype).mT if t else
+                     orthogonalized(u, dtype=self.ns_dtype) for u, t in zip(updates, tall)]
+        size = -group["lr"] * 0.2 * math.sqrt(max(ps[0].shape))
+        torch._foreach_add_(ps, [(u.mT if t else u).to(p.dtype) for p, u, t in zip(ps, batch, tall)], alpha=size)
 
     def _stacked(self, ps: list[torch.Tensor], tall: list[bool], key: str) -> torch.Tensor:
         """The state ``key`` of same-shaped ``ps`` (tall ones transposed) as one stacked tensor whose slices are the

@@ -77,6 +77,15 @@ class PartThreads:
             outcome = self._side_by_side(calls)
         return [value if ok else self._one(calls[index]) for index, (ok, value) in enumerate(outcome)]
 
+    def map(self, calls: Sequence[Callable]) -> list:
+        """Each call's result, in order, the calls side by side (for work that compiles nothing: Muon's step);
+        the first error a call raised is raised here, once all have finished."""
+        outcome = self._side_by_side(calls)
+        for ok, value in outcome:
+            if not ok:
+                raise value
+        return [value for _, value in outcome]
+
     def _side_by_side(self, calls: Sequence[Callable]) -> list[tuple[bool, object]]:
         for index, call in enumerate(calls):
             self._inbox[index % len(self._inbox)].put(_Tagged(index, call))

@@ -32,7 +32,7 @@ from pipeline.lm.training.batches import (
     tokenize_conversations,
 )
 from pipeline.lm.training.compile import compiled_blocks, dynamo_environment, use_bf16
-from pipeline.lm.training.optim import build_optimizer
+from pipeline.lm.training.optim import MuonAdamW, build_optimizer
 from pipeline.lm.training.parts import PartThreads, split_rows
 from pipeline.lm.training.result import CHECKPOINTS_DIR, MODEL_DIR, TrainResult
 from pipeline.lm.training.settings import CompileMode, TrainSettings
@@ -295,6 +295,21 @@ def composed_rows(trainer: Trainer, tokenizer: PreTrainedTokenizerBase):
         trainer.remove_callback(callback)
 
 
+@contextlib.contextmanager
+def _main_thread_alone(enabled: bool):
+    """While the batch's parts and Muon's step run on the part threads, the calling thread's own work (clipping, the
+    AdamW part, collation) on one intra-op thread: an idle intra-op thread of the caller's spins a while after each
+    of its parallel kernels, on a core a part thread needs (README, Speed). The same numbers: the element-wise
+    kernels and norms involved compute alike on one thread and two."""
+    threads = torch.get_num_threads()
+    if enabled:
+        torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
+
+
 def checkpoint_steps(output_dir: str | Path) -> list[int]:
     """Steps of the checkpoints present under ``output_dir/checkpoints``, ascending."""
     folder = Path(output_dir) / CHECKPOINTS_DIR
@@ -369,6 +384,8 @@ def _finetune(model, tokenizer, fmt, conversations, settings, output_dir, seed, 
     side_by_side = settings.batch_threads > 1 and threads >= settings.batch_threads
     if side_by_side:
         trainer.part_threads = PartThreads(settings.batch_threads, threads // settings.batch_threads)
+        if isinstance(trainer.optimizer, MuonAdamW):  # its step shared out among the same threads
+            trainer.optimizer.side_by_side = trainer.part_threads
     if any(isinstance(c, ProgressCallback) for c in trainer.callback_handler.callbacks):
         trainer.remove_callback(ProgressCallback)
         trainer.add_callback(BarProgress)
@@ -378,10 +395,12 @@ def _finetune(model, tokenizer, fmt, conversations, settings, output_dir, seed, 
     started = time.perf_counter()
     try:
         with compiled_blocks(model, settings.torch_compile, release_gil=side_by_side), \
-                composed_rows(trainer, tokenizer):
+                composed_rows(trainer, tokenizer), _main_thread_alone(side_by_side):
             output = trainer.train(resume_from_checkpoint=resume)
     finally:
         if trainer.part_threads:
+            if isinstance(trainer.optimizer, MuonAdamW):
+                trainer.optimizer.side_by_side = None
             trainer.part_threads.close()
             trainer.part_threads = None
     train_seconds = time.perf_counter() - started
