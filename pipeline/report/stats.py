@@ -9,9 +9,10 @@ import math
 from dataclasses import dataclass
 from typing import Sequence
 
-from scipy.stats import binomtest, norm
 
-Z95 = float(norm.ppf(0.975))  # 1.959963984540054
+# The normal distribution's 97.5% quantile, scipy.stats.norm.ppf(0.975) (a test checks it): a constant, so that importing
+# this module (a job does, through the report's Hydra callback) does not import scipy (about half a second).
+Z95 = 1.959963984540054
 
 
 def wilson_interval(successes: int, n: int, z: float = Z95) -> tuple[float, float]:
@@ -46,6 +47,8 @@ def mcnemar_exact(only_a: int, only_b: int) -> float:
     The exact form (not the chi-square approximation) because cells of a few hundred worlds often have
     fewer than 25 discordant pairs.
     """
+    from scipy.stats import binomtest
+
     discordant = only_a + only_b
     if discordant == 0:
         return 1.0

@@ -3,11 +3,21 @@
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 
 import pytest
 from scipy.stats import binomtest
 
-from pipeline.report.stats import mcnemar, mcnemar_exact, seeded_rate, wilson_interval
+from pipeline.report.stats import Z95, mcnemar, mcnemar_exact, seeded_rate, wilson_interval
+
+
+def test_the_95_percent_quantile_is_scipys_and_importing_the_module_leaves_scipy_alone():
+    from scipy.stats import norm
+
+    assert Z95 == float(norm.ppf(0.975))
+    code = "import sys, pipeline.report.stats; print('scipy.stats' in sys.modules)"
+    assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout == "False\n"
 
 
 def test_wilson_closed_forms():
