@@ -12,7 +12,10 @@ gradients accumulate into the same ``.grad``; with two parts the sum is the same
 threads than parts (a grid job on one thread), the batch stays whole: parts one after the other on one thread
 ran 0.97x. Dynamo must not compile in two threads at once (it deadlocked here), so the first step's parts run
 one after the other; later steps run under ``fail_on_recompile`` and redo, one at a time, a part that would
-recompile (it fails in its forward, before its gradients exist).
+recompile (it fails in its forward, before its gradients exist). Between the parts the same threads take
+Muon's step (`PartThreads.map`; `pipeline.lm.training.optim.MuonAdamW.side_by_side`), and the caller's own thread
+runs on one intra-op thread meanwhile (`pipeline.lm.training.trainer`): an idle intra-op thread of the caller's
+spins on a core after each of its parallel kernels, and that was taken from a part.
 """
 
 from __future__ import annotations

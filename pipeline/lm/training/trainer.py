@@ -76,7 +76,7 @@ class _Trainer(Trainer):
 
     With ``part_threads`` each micro-batch is cut into as many parts of consecutive rows (each padded as the
     collator pads), computed side by side (`pipeline.lm.training.parts`); the positions are drawn for the whole
-    micro-batch first, so they are those of the uncut run.
+    micro-batch first, so they are those of the uncut run. `finetune` gives the same threads Muon's step.
 
     With ``labelled_logits`` a training batch's loss is `labelled_loss` (the head at the labelled positions only),
     except where the whole model is compiled (``torch_compile=full``: its compiled forward computes the loss)."""
