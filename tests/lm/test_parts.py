@@ -9,6 +9,7 @@ from pipeline.lm.chat import WORD_LEVEL_FORMAT
 from pipeline.lm.model_settings import ModelSettings
 from pipeline.lm.models import build_scratch_model, load_model
 from grid_conversations import TINY, data, trained  # noqa: F401 - data: a fixture
+from pipeline.lm.training.compile import compile_settings
 from pipeline.lm.training.parts import PartThreads, split_rows
 from pipeline.lm.training.settings import TrainSettings
 from pipeline.lm.training.trainer import finetune
@@ -62,6 +63,22 @@ def test_part_threads_run_side_by_side_on_their_own_torch_threads_and_return_in_
         assert torch.get_num_threads() == before  # the caller's threads keep their setting
     finally:
         pool.close()
+
+
+def test_part_threads_run_their_calls_under_the_settings_given_which_torch_keeps_per_thread():
+    assert not torch._dynamo.config.specialize_float  # torch's default, here and in any new thread
+    pool = PartThreads(2, settings=compile_settings)
+    try:
+        def read():
+            return torch._dynamo.config.specialize_float, torch.fx.experimental._config.use_duck_shape
+
+        assert pool.run([read, read]) == [(True, False)] * 2
+        assert pool.map([read, read]) == [(True, False)] * 2
+        assert read() == (False, True)  # the caller's own settings are untouched
+    finally:
+        pool.close()
+    with compile_settings():  # what compiled_blocks traces under, in the caller's thread
+        assert (torch._dynamo.config.specialize_float, torch.fx.experimental._config.use_duck_shape) == (True, False)
 
 
 def test_a_part_that_fails_raises_in_the_caller():

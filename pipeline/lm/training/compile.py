@@ -136,6 +136,17 @@ def _warmed() -> None:
 
 
 @contextmanager
+def compile_settings():
+    """The compiler's settings `compiled_blocks` traces under. torch keeps them per thread: a thread that may compile
+    the blocks (`pipeline.lm.training.parts`) enters this itself. Python floats traced as constants
+    (``specialize_float``); sizes not "duck-shaped" (one symbol for equal sizes): with it, a first batch part as
+    wide as the hidden size (128 on the CPU default) tied its width to the weights' constant size, so that graph
+    was static and the next width compiled again (14 s cold)."""
+    with torch._dynamo.config.patch(specialize_float=True), torch.fx.experimental._config.patch(use_duck_shape=False):
+        yield
+
+
+@contextmanager
 def compiled_blocks(model: torch.nn.Module, torch_compile: str, release_gil: bool = False):
     """With ``regional``, compile every block of the model's repeated blocks (a decoder's layers: the
     ModuleLists whose members share a class) in place while the block runs, then put them back to eager.
@@ -147,7 +158,8 @@ def compiled_blocks(model: torch.nn.Module, torch_compile: str, release_gil: boo
     of the CPU default's job; its steps measured as fast either way). accelerate's regional compilation also
     compiles the small modules around the blocks, each apart; through Trainer that ran slower than eager here.
     Python floats are traced as constants (``specialize_float``): traced as symbols, one of the layer's floats
-    made dynamo start the trace over, about 3 s of every cold compile, for the same graph and the same weights.
+    made dynamo start the trace over, about 3 s of every cold compile, for the same graph and the same weights
+    (`compile_settings`, which the part threads enter too: torch keeps these settings per thread).
     Dynamo's caches are reset afterwards, so the next job in the same process starts under no guards or
     recompile counts of this one (inductor's on-disk cache keeps the compiled kernels). With ``release_gil``
     the compiled graphs run from inductor's C++ wrapper, which releases Python's interpreter lock, so threads
@@ -163,7 +175,7 @@ def compiled_blocks(model: torch.nn.Module, torch_compile: str, release_gil: boo
     for block in blocks:
         block.compile(dynamic=True, options={"cpp_wrapper": True} if release_gil else None)
     try:
-        with torch._dynamo.config.patch(specialize_float=True):
+        with compile_settings():
             yield
     finally:
         for block in blocks:

@@ -20,9 +20,10 @@ spins on a core after each of its parallel kernels, and that was taken from a pa
 
 from __future__ import annotations
 
+import contextlib
 import queue
 import threading
-from typing import Callable, Sequence
+from typing import Callable, ContextManager, Sequence
 
 import torch
 
@@ -50,24 +51,28 @@ def split_rows(inputs: dict[str, torch.Tensor], parts: int, multiple: int = 1) -
 class PartThreads:
     """``n`` daemon threads, each with ``intra_op`` torch threads, that run one call each per `run`."""
 
-    def __init__(self, n: int, intra_op: int = 1):
+    def __init__(self, n: int, intra_op: int = 1, settings: Callable[[], ContextManager] = contextlib.nullcontext):
+        """``settings``: a context each thread runs its calls in, for its whole life (torch keeps its compiler's
+        settings per thread, so those the caller patched do not reach these threads)."""
         self.parts = n
         self._inbox = [queue.Queue() for _ in range(n)]
         self._done: queue.Queue = queue.Queue()
         self._compiled = False
         for i in range(n):
-            threading.Thread(target=self._work, args=(i, intra_op), daemon=True, name=f"batch-part-{i}").start()
+            threading.Thread(target=self._work, args=(i, intra_op, settings), daemon=True,
+                             name=f"batch-part-{i}").start()
 
-    def _work(self, i: int, intra_op: int) -> None:
+    def _work(self, i: int, intra_op: int, settings: Callable[[], ContextManager]) -> None:
         torch.set_num_threads(intra_op)  # this thread's own setting; the caller's threads keep theirs
-        while True:
-            call = self._inbox[i].get()
-            if call is None:
-                return
-            try:
-                self._done.put((True, call()))
-            except BaseException as error:  # handed to the caller, raised there
-                self._done.put((False, error))
+        with settings():
+            while True:
+                call = self._inbox[i].get()
+                if call is None:
+                    return
+                try:
+                    self._done.put((True, call()))
+                except BaseException as error:  # handed to the caller, raised there
+                    self._done.put((False, error))
 
     def run(self, calls: Sequence[Callable]) -> list:
         """Each call's result, in order. The calls run side by side; the first time, and for any call that

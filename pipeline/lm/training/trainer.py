@@ -31,7 +31,7 @@ from pipeline.lm.training.batches import (
     ConversationDataset, LengthGroupedBatches, RightPadCollator, split_eval, stretched_batch_positions,
     tokenize_conversations,
 )
-from pipeline.lm.training.compile import compiled_blocks, dynamo_environment, use_bf16
+from pipeline.lm.training.compile import compile_settings, compiled_blocks, dynamo_environment, use_bf16
 from pipeline.lm.training.optim import MuonAdamW, build_optimizer
 from pipeline.lm.training.parts import PartThreads, split_rows
 from pipeline.lm.training.result import CHECKPOINTS_DIR, MODEL_DIR, TrainResult
@@ -383,7 +383,9 @@ def _finetune(model, tokenizer, fmt, conversations, settings, output_dir, seed, 
     # On fewer threads than parts the batch stays whole: parts one after the other measured 0.97x (README, Speed).
     side_by_side = settings.batch_threads > 1 and threads >= settings.batch_threads
     if side_by_side:
-        trainer.part_threads = PartThreads(settings.batch_threads, threads // settings.batch_threads)
+        trainer.part_threads = PartThreads(settings.batch_threads, threads // settings.batch_threads,
+                                           compile_settings if settings.torch_compile is CompileMode.regional
+                                           else contextlib.nullcontext)
         if isinstance(trainer.optimizer, MuonAdamW):  # its step shared out among the same threads
             trainer.optimizer.side_by_side = trainer.part_threads
     if any(isinstance(c, ProgressCallback) for c in trainer.callback_handler.callbacks):
