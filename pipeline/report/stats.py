@@ -9,9 +9,8 @@ import math
 from dataclasses import dataclass
 from typing import Sequence
 
-
-# The normal distribution's 97.5% quantile, scipy.stats.norm.ppf(0.975) (a test checks it): a constant, so that importing
-# this module (a job does, through the report's Hydra callback) does not import scipy (about half a second).
+# The normal distribution's 97.5% quantile, scipy.stats.norm.ppf(0.975) (a test checks it): a constant, so that
+# importing this module (a job does, through the report's Hydra callback) does not import scipy (about 0.5 s).
 Z95 = 1.959963984540054
 
 
