@@ -567,3 +567,32 @@ def test_gradient_clipping_is_accelerates_bit_for_bit(scale):
     torch.testing.assert_close(norm, expected, rtol=0, atol=0, equal_nan=True)
     for a, b in zip(ours.parameters(), theirs.parameters()):
         torch.testing.assert_close(a.grad, b.grad, rtol=0, atol=0, equal_nan=True)
+
+
+def test_token_accuracy_shared_out_among_threads_counts_what_one_thread_counts(tokenizer, conversations):
+    """The held-out accuracy with its batches shared out among part threads: the same counts, odd shares included."""
+    from pipeline.lm.training import trainer as trainer_module
+
+    data = tokenize_conversations(tokenizer, WORD_LEVEL_FORMAT, conversations[:37], 512)
+    model = tiny_model(tokenizer)
+    seen = []
+    original = trainer_module.head_at_labels
+
+    def head(model, inputs):  # which threads computed batches; every third target made the argmax
+        seen.append(threading.current_thread().name)
+        logits, targets = original(model, inputs)
+        rows = torch.arange(0, len(targets), 3)
+        return logits.index_put((rows, targets[rows]), torch.tensor(100.0), accumulate=True), targets
+
+    trainer_module.head_at_labels = head
+    try:
+        alone = trainer_module.token_accuracy(model, data, tokenizer.pad_token_id, batch_size=4)
+        assert set(seen) == {threading.current_thread().name}
+        seen.clear()
+        shared = [trainer_module.token_accuracy(model, data, tokenizer.pad_token_id, batch_size=4, parts=parts)
+                  for parts in (2, 3)]
+    finally:
+        trainer_module.head_at_labels = original
+    assert alone is not None and 0.3 < alone < 1  # a third and what the untrained model gets right
+    assert shared == [alone, alone]
+    assert len(seen) == 2 * 10 and threading.current_thread().name not in seen  # 37 rows: 10 batches each time

@@ -149,6 +149,15 @@ class _Trainer(Trainer):
             torch.nn.utils.clip_grads_with_norm_(parameters, self.args.max_grad_norm, total)
         return total
 
+    def _track_num_input_tokens(self, inputs):
+        """Trainer's count of the real (non-padding) tokens seen, without its gather and tensor round trip where
+        there is one process: the same sum."""
+        if (self.args.include_num_input_tokens_seen == "non_padding" and self.accelerator.num_processes == 1
+                and "attention_mask" in inputs):
+            self.state.num_input_tokens_seen += int(inputs["attention_mask"].sum())
+            return
+        super()._track_num_input_tokens(inputs)
+
     def _issue_warnings_after_load(self, load_result) -> None:
         tied = getattr(self.model.config, "tie_word_embeddings", False)
         if tied and set(load_result.missing_keys) == {"lm_head.weight"} and not load_result.unexpected_keys:
@@ -194,33 +203,51 @@ class _PackingTrainer(_Trainer):
 
 @torch.no_grad()
 def token_accuracy(model: PreTrainedModel, dataset: ConversationDataset, pad_token_id: int,
-                   batch_size: int = 16, *, sharded: bool = False) -> float | None:
+                   batch_size: int = 16, *, sharded: bool = False, parts: int = 1) -> float | None:
     """Argmax next-token accuracy over every labelled (gpt) position; None if there is none.
 
     ``sharded``: the model is FSDP-wrapped, so only its root forward gathers the root's parameters (the
-    embedding, final norm and head); that forward computes full-vocabulary logits.
+    embedding, final norm and head); that forward computes full-vocabulary logits. ``parts`` > 1 (not sharded):
+    the batches are shared out among as many Python threads of one intra-op thread each, computed side by side
+    (the counts are the same: each batch is computed alone, and a row's logits do not depend on the threads).
     """
     if len(dataset) == 0:
         return None
     model.eval()
     collate = RightPadCollator(pad_token_id)
     order = sorted(range(len(dataset)), key=lambda i: len(dataset[i]["input_ids"]))
-    correct = total = 0
+    starts = range(0, len(order), batch_size)
     device = next(model.parameters()).device
-    for start in range(0, len(order), batch_size):
-        batch = collate([dataset[i] for i in order[start:start + batch_size]])
-        input_ids, labels = batch["input_ids"].to(device), batch["labels"].to(device)
-        if sharded:
-            targets = labels[:, 1:]
-            keep = targets != IGNORE_INDEX
-            predictions, targets = model(input_ids=input_ids).logits[:, :-1][keep].argmax(-1), targets[keep]
-        else:
-            # Project only labelled positions: a full-vocabulary logits tensor would dwarf the batch.
-            logits, targets = head_at_labels(model, {"input_ids": input_ids, "labels": labels})
-            predictions = logits.argmax(-1)
-        correct += (predictions == targets).sum().item()
-        total += len(targets)
+
+    def count(share: Sequence[int]) -> tuple[int, int]:
+        correct = total = 0
+        for start in share:
+            batch = collate([dataset[i] for i in order[start:start + batch_size]])
+            input_ids, labels = batch["input_ids"].to(device), batch["labels"].to(device)
+            if sharded:
+                targets = labels[:, 1:]
+                keep = targets != IGNORE_INDEX
+                predictions, targets = model(input_ids=input_ids).logits[:, :-1][keep].argmax(-1), targets[keep]
+            else:
+                # Project only labelled positions: a full-vocabulary logits tensor would dwarf the batch.
+                logits, targets = head_at_labels(model, {"input_ids": input_ids, "labels": labels})
+                predictions = logits.argmax(-1)
+            correct += int((predictions == targets).sum())
+            total += len(targets)
+        return correct, total
+
+    if parts > 1 and not sharded and len(starts) > 1:
+        threads = PartThreads(min(parts, len(starts)))
+        try:
+            counts = threads.map([functools.partial(torch.no_grad()(count), starts[i::threads.parts])
+                                  for i in range(threads.parts)])
+        finally:
+            threads.close()
+    else:
+        counts = [count(starts)]
+    correct, total = map(sum, zip(*counts))
     return correct / total if total else None
+
 
 def _checkpointing(enabled: bool) -> dict:
     """Activation (gradient) checkpointing, under the name this transformers release takes (newer ones renamed
@@ -418,7 +445,7 @@ def _finetune(model, tokenizer, fmt, conversations, settings, output_dir, seed, 
         save_chat_format(fmt, model_dir)
     state = trainer.state
     accuracy = token_accuracy(trainer.model, eval_data, tokenizer.pad_token_id, settings.per_device_batch_size,
-                              sharded=trainer.is_fsdp_enabled)
+                              sharded=trainer.is_fsdp_enabled, parts=settings.batch_threads if side_by_side else 1)
     losses = [entry["loss"] for entry in state.log_history if "loss" in entry]
     session_tokens = state.num_input_tokens_seen - trainer._initial_num_input_tokens_seen
     return TrainResult(
