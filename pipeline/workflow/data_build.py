@@ -17,6 +17,7 @@ from typing import Iterable, Optional
 import mlflow
 from tqdm import tqdm
 
+from pipeline.core.bulk import bulk_building
 from pipeline.core.generators import GeneratorConfig, check_deep, check_ranges, generate_worlds, world_stats
 from pipeline.core.texts import DEFAULT_PROMPT, conversation, edge_label_spans, listed_obstacles
 from pipeline.core.variants import BY_NAME, text_direction
@@ -343,10 +344,11 @@ def run_data_build(settings: DataSettings, texts: TextSettings, files: dict[str,
     for split, found in files.items():
         if found is not None:  # which file, exactly (the paper's train file has no published checksum)
             mlflow.set_tags({f"{split}_file": str(found.path), f"{split}_file_sha256": found.sha256})
-    train, test = build_splits(settings, files)
     out = step_dir / "dataset"
-    summary = write_dataset(out, train, test, texts, settings.train_max, settings.train_distractors, settings.frame,
-                            settings.mask_edge_labels)
+    with bulk_building():  # tens of thousands of worlds and conversations
+        train, test = build_splits(settings, files)
+        summary = write_dataset(out, train, test, texts, settings.train_max, settings.train_distractors,
+                                settings.frame, settings.mask_edge_labels)
     mlflow.set_tag("dataset_sha256", summary["sha256"])
     mlflow.log_metrics({
         "n_train": summary["n_train"], "n_test": summary["n_test"],

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import mlflow
 
+from pipeline.core.bulk import bulk_building
 from pipeline.lm.chat import read_conversations
 from pipeline.lm.model_settings import ModelSettings
 from pipeline.lm.training.settings import TrainSettings
@@ -53,7 +54,8 @@ def run_training(model: ModelSettings, settings: TrainSettings, seed: int, frame
     from pipeline.lm.training.entry import TrainRequest, launch, train
 
     discard_incomplete_checkpoints(step_dir)
-    conversations = read_conversations(train_file)
+    with bulk_building():  # the training conversations
+        conversations = read_conversations(train_file)
     tokenizer = make_tokenizer(model, (turn["value"] for turns in conversations for turn in turns), frame)
     mlflow.log_param("model.vocab_size", len(tokenizer))
     tokenizer_dir = step_dir / "tokenizer"

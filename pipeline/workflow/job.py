@@ -24,7 +24,7 @@ from pipeline.workflow.config import ConfigError, JobSettings, UndefinedCell, co
 from pipeline.workflow.data_build import TEST_CONVERSATIONS, TRAIN_CONVERSATIONS, TextSettings, log_step_dataset, run_data_build
 from pipeline.workflow.evaluation import run_eval
 from pipeline.workflow.finetune import run_finetune_step
-from pipeline.workflow.steps import StepRun, clear_inherited_run, get_or_run, has_finished
+from pipeline.workflow.steps import StepRun, clear_inherited_run, get_or_run
 from pipeline.workflow.tracking import (
     JOB_KIND, KIND_TAG, TRAIN_MAX_TAGS, VALID_PREFIX, StoreError, check_store, ensure_experiment, step_run_tag, ui_path,
 )
@@ -122,18 +122,13 @@ def run_job(cfg: DictConfig) -> dict | None:
         import torch
 
         torch.set_num_threads(cfg.threads)
-    regional = job.train.torch_compile is CompileMode.regional
-    if regional:
+    if job.train.torch_compile is CompileMode.regional:
         from pipeline.lm.training.compile import warm_compiler
 
         warm_compiler()  # g++ beside the data-build
     experiment_id = prepare_store(cfg)
     mlflow.set_tracking_uri(cfg.tracking.uri)
     mlflow.set_experiment(experiment_id=experiment_id)
-    if regional and not has_finished(experiment_id, "finetune", hashes["finetune"]):
-        from pipeline.lm.training.compile import compile_ahead
-
-        compile_ahead(job.model, job.train)  # the decoder layer compiled beside the data-build
     tags = {"direction": direction, "variant": variant, "mode": mode, "seed": str(cfg.seed),
             "paper_row": PAPER_ROWS[variant]}
     work_dir = Path(cfg.work_dir)

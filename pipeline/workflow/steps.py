@@ -118,11 +118,6 @@ def changed_artifacts(run) -> str | None:
     return None
 
 
-def has_finished(experiment_id: str, step: str, step_hash: str) -> bool:
-    """Whether a FINISHED run of ``step`` with ``step_hash`` exists (its artifacts unchecked: `find_finished`)."""
-    return bool(_runs_with_hash(experiment_id, step, step_hash, "FINISHED"))
-
-
 def find_finished(experiment_id: str, step: str, step_hash: str) -> str | None:
     """The id of the latest FINISHED run of ``step`` with ``step_hash`` whose artifacts are all there and
     unchanged; a run that fails the check is noted in the store and on stdout, and not reused."""

@@ -198,6 +198,21 @@ def test_a_stretch_below_one_is_refused_naming_the_value(stretch):
         TrainSettings(position_stretch=stretch)
 
 
+@pytest.mark.parametrize("rows", [[5, 9, 9, 1], [0, 7, 3], [16, 16]])
+def test_stretched_batch_positions_are_each_rows_draws_in_turn_and_the_padding_numbered_on(rows):
+    """The batch's positions are `stretched_positions` drawn row after row from the seed's generator, each row's
+    padding numbered on after its last position (a row of padding alone: 0, 1, ...)."""
+    width = 16
+    mask = (torch.arange(width) < torch.tensor(rows)[:, None]).long()
+    generator = torch.Generator().manual_seed(7)
+    expected = torch.arange(width).repeat(len(rows), 1)
+    for row, n in enumerate(rows):
+        if n:
+            expected[row, :n] = stretched_positions(n, 2.0, generator)
+            expected[row, n:] = expected[row, n - 1] + 1 + torch.arange(width - n)
+    assert torch.equal(stretched_batch_positions(mask, 2.0, seed=7), expected)
+
+
 @torch.no_grad()
 def test_stretched_positions_reach_each_sequence_as_if_it_were_alone(tokenizer, conversations):
     """Stretched position ids with the collator's attention mask: each row computes what the sequence computes

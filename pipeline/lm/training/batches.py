@@ -89,14 +89,19 @@ def stretched_batch_positions(attention_mask: torch.Tensor, stretch: float, seed
     same batch and seed give the same positions whatever ran before (a resumed run draws what the uninterrupted
     one drew; accelerate's data loader collates a batch ahead of the step, so torch's global generator cannot)."""
     generator = torch.Generator().manual_seed(seed)
-    lengths = attention_mask.sum(dim=1).tolist()
+    counts = attention_mask.sum(dim=1)
     width = attention_mask.shape[1]
-    positions = torch.arange(width).repeat(len(lengths), 1)
-    for row, n in enumerate(lengths):
-        if n:
-            positions[row, :n] = stretched_positions(n, stretch, generator)
-            positions[row, n:] = positions[row, n - 1] + 1 + torch.arange(width - n)
-    return positions.to(attention_mask.device)
+    drawn = [stretched_positions(n, stretch, generator) for n in counts.tolist() if n]  # the rows' draws, in order
+    # Real tokens lead each row (right padding), so the rows' draws concatenated fill the mask's ones in order.
+    columns = torch.arange(width)
+    real = columns < counts[:, None]
+    positions = torch.zeros(len(counts), width, dtype=torch.long)
+    if drawn:
+        positions[real] = torch.cat(drawn)
+    # The padding numbered on after the row's last position (a row with no real token: 0, 1, ...).
+    last = positions.gather(1, (counts - 1).clamp(min=0)[:, None])
+    after = torch.where(counts[:, None] > 0, last + 1 + columns - counts[:, None], columns)
+    return torch.where(real, positions, after).to(attention_mask.device)
 
 
 @dataclass

@@ -13,9 +13,6 @@ from pathlib import Path
 
 import torch
 
-from pipeline.lm.model_settings import ModelKind, ModelSettings
-from pipeline.lm.training.settings import CompileMode, TrainSettings
-
 log = logging.getLogger(__name__)
 
 DYNAMO_ENV_PREFIX = "ACCELERATE_DYNAMO_"
@@ -133,77 +130,9 @@ def warm_compiler() -> None:
     _warming.start()
 
 
-_ahead: threading.Thread | None = None
-
-
-def compile_ahead(model: ModelSettings, train: TrainSettings) -> None:
-    """Start compiling a job's decoder layer, forward and backward, in a background thread (after `warm_compiler`'s
-    checks, in the same kind of thread), so that the job's first training step finds it in inductor's on-disk caches
-    (its dynamo trace is redone there: about 1.5 s, against about 14 s cold on the CPU default). A job calls this
-    before its data-build, whose Python keeps one core busy; `compiled_blocks` waits for it. The layer is traced as a
-    training step traces it: a scratch model of ``model``'s size with a tiny vocabulary (the layers do not depend on
-    it), a short batch of two rows built as the trainer builds one (padding, stretched positions), the loss, autocast,
-    threads and C++ wrapper that ``train`` gives. Where they differ from the real step's, the step compiles again as
-    it would have anyway. Once per process; nothing for a pretrained model, a GPU, or ``torch_compile`` other than
-    ``regional``."""
-    global _ahead
-    if (_ahead is not None or torch.cuda.is_available() or model.kind is not ModelKind.scratch
-            or train.torch_compile is not CompileMode.regional or train.gradient_checkpointing
-            or train.accelerate_config is not None):
-        return
-    threads = train.torch_threads or torch.get_num_threads()
-    parts = train.batch_threads if 1 < train.batch_threads <= threads else 1  # as the trainer cuts its batches
-    checks = _warming
-
-    def run() -> None:
-        if checks is not None:
-            checks.join()
-        try:
-            _compile_layer(model, train, threads // parts, release_gil=parts > 1)
-        except Exception as error:  # noqa: BLE001 - the job's first step compiles, and reports, whatever failed here
-            log.debug("compiling the decoder layer ahead of the first step: %s", error)
-
-    _ahead = threading.Thread(target=run, name="inductor-compile-ahead", daemon=True)
-    _ahead.start()
-
-
-# The rows `compile_ahead` traces the layer with: lengths and trained positions that no size of the model shares.
-_AHEAD_ROWS = ((37, 13), (29, 11))
-
-
-def _compile_layer(model: ModelSettings, train: TrainSettings, threads: int, release_gil: bool) -> None:
-    from pipeline.lm.models import build_scratch_model, make_tokenizer
-    from pipeline.lm.training.batches import RightPadCollator, stretched_batch_positions
-    from pipeline.lm.training.trainer import labelled_loss
-
-    torch.set_num_threads(threads)  # this thread's own setting, as a part thread's
-    tokenizer = make_tokenizer(model, ["0 1 2 3 4 5 6 7 8 9 up down left right"], frame=2)
-    net = build_scratch_model(tokenizer, model, seed=0)
-    net.config.use_cache = False  # as Trainer trains
-    net.train()
-    draw = torch.Generator().manual_seed(0)  # its own generator: torch's global one is left as it was
-    ids = torch.randint(0, len(tokenizer), (sum(n for n, _ in _AHEAD_ROWS),), generator=draw)
-    rows, start = [], 0
-    for length, prompt in _AHEAD_ROWS:
-        row = ids[start:start + length].tolist()
-        rows.append({"input_ids": row, "labels": [-100] * prompt + row[prompt:]})
-        start += length
-    collate = RightPadCollator(tokenizer.pad_token_id, attention_mask=not train.packing or train.position_stretch > 1,
-                               pad_to_multiple_of=train.pad_to_multiple_of)
-    batch = collate(rows)
-    if train.position_stretch > 1:
-        batch["position_ids"] = stretched_batch_positions(batch["attention_mask"], train.position_stretch, 0)
-    bf16 = train.bf16 and cpu_has_bf16()
-    with compile_settings(), _compiled(net, "regional", release_gil):
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-            loss = labelled_loss(net, batch) if train.labelled_logits else net(**batch).loss
-        loss.backward()
-
-
 def _warmed() -> None:
-    for thread in (_warming, _ahead):
-        if thread is not None and thread is not threading.current_thread():
-            thread.join()
+    if _warming is not None:
+        _warming.join()
 
 
 @contextmanager
@@ -240,15 +169,9 @@ def compiled_blocks(model: torch.nn.Module, torch_compile: str, release_gil: boo
     if torch_compile != "regional":
         yield
         return
-    _warmed()  # `warm_compiler`'s checks and `compile_ahead`'s layer: one thread compiles at a time
-    with _compiled(model, torch_compile, release_gil):
-        yield
-
-
-@contextmanager
-def _compiled(model: torch.nn.Module, torch_compile: str, release_gil: bool):
     blocks = [block for module in model.modules() if isinstance(module, torch.nn.ModuleList) and len(module) > 1
               and len({type(block) for block in module}) == 1 for block in module]
+    _warmed()  # the vector-instruction checks `warm_compiler` started: one thread compiles at a time
     for block in blocks:
         block.compile(dynamic=True, options={"cpp_wrapper": True} if release_gil else None)
     try:

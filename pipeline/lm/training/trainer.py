@@ -25,6 +25,7 @@ from transformers import PreTrainedModel, PreTrainedTokenizerBase, Trainer, Trai
 from transformers.trainer_callback import ProgressCallback
 from transformers.trainer_utils import PREFIX_CHECKPOINT_DIR, get_last_checkpoint
 
+from pipeline.core.bulk import bulk_building
 from pipeline.lm.chat import IGNORE_INDEX, ChatFormat
 from pipeline.lm.models import ComposedRows, save_chat_format
 from pipeline.lm.training.batches import (
@@ -383,8 +384,10 @@ def _finetune(model, tokenizer, fmt, conversations, settings, output_dir, seed, 
     checkpoints.mkdir(parents=True, exist_ok=True)
 
     train_part, eval_part = split_eval(conversations, settings.eval_fraction, seed)
-    train_data = tokenize_conversations(tokenizer, fmt, train_part, max_length, settings.long_conversations)
-    eval_data = tokenize_conversations(tokenizer, fmt, eval_part, max_length, settings.long_conversations, "held-out")
+    with bulk_building():  # a list of token ids, and of labels, for each conversation
+        train_data = tokenize_conversations(tokenizer, fmt, train_part, max_length, settings.long_conversations)
+        eval_data = tokenize_conversations(tokenizer, fmt, eval_part, max_length, settings.long_conversations,
+                                           "held-out")
     if len(train_data) == 0:
         raise ValueError(f"no training conversation fits max_length={max_length} "
                          f"({train_data.dropped} dropped)")
