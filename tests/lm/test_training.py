@@ -611,3 +611,26 @@ def test_token_accuracy_shared_out_among_threads_counts_what_one_thread_counts(t
     assert alone is not None and 0.3 < alone < 1  # a third and what the untrained model gets right
     assert shared == [alone, alone]
     assert len(seen) == 2 * 10 and threading.current_thread().name not in seen  # 37 rows: 10 batches each time
+
+
+def test_the_real_token_count_is_trainers_own():
+    """On one process the trainer counts the real tokens seen without Trainer's gather: the same sum."""
+    from types import SimpleNamespace
+
+    from accelerate import Accelerator
+
+    from pipeline.lm.training.trainer import _Trainer
+
+    mask = torch.tensor([[1, 1, 1, 0], [1, 1, 0, 0]])
+    inputs = {"input_ids": torch.zeros(2, 4, dtype=torch.long), "attention_mask": mask}
+
+    def trainer():
+        args = SimpleNamespace(include_num_input_tokens_seen="non_padding", device=torch.device("cpu"))
+        return SimpleNamespace(args=args, accelerator=Accelerator(cpu=True), processing_class=None,
+                               state=SimpleNamespace(num_input_tokens_seen=7),
+                               model=SimpleNamespace(main_input_name="input_ids"))
+
+    ours, theirs = trainer(), trainer()
+    _Trainer._track_num_input_tokens(ours, inputs)
+    Trainer._track_num_input_tokens(theirs, inputs)
+    assert ours.state.num_input_tokens_seen == theirs.state.num_input_tokens_seen == 12
