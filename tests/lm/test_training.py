@@ -211,6 +211,7 @@ def test_stretched_batch_positions_are_each_rows_draws_in_turn_and_the_padding_n
             expected[row, :n] = stretched_positions(n, 2.0, generator)
             expected[row, n:] = expected[row, n - 1] + 1 + torch.arange(width - n)
     assert torch.equal(stretched_batch_positions(mask, 2.0, seed=7), expected)
+    assert stretched_batch_positions(mask[:, :0], 2.0, seed=7).shape == (len(rows), 0)  # no column at all
 
 
 @torch.no_grad()
@@ -624,13 +625,17 @@ def test_the_real_token_count_is_trainers_own():
     mask = torch.tensor([[1, 1, 1, 0], [1, 1, 0, 0]])
     inputs = {"input_ids": torch.zeros(2, 4, dtype=torch.long), "attention_mask": mask}
 
-    def trainer():
-        args = SimpleNamespace(include_num_input_tokens_seen="non_padding", device=torch.device("cpu"))
-        return SimpleNamespace(args=args, accelerator=Accelerator(cpu=True), processing_class=None,
-                               state=SimpleNamespace(num_input_tokens_seen=7),
-                               model=SimpleNamespace(main_input_name="input_ids"))
+    def trainer(cls):
+        made = object.__new__(cls)  # the attributes the count reads, without building a Trainer
+        made.args = SimpleNamespace(include_num_input_tokens_seen="non_padding", device=torch.device("cpu"))
+        made.accelerator, made.processing_class = Accelerator(cpu=True), None
+        made.state, made.model = SimpleNamespace(num_input_tokens_seen=7), SimpleNamespace(main_input_name="input_ids")
+        return made
 
-    ours, theirs = trainer(), trainer()
+    ours, theirs = trainer(_Trainer), trainer(Trainer)
     _Trainer._track_num_input_tokens(ours, inputs)
     Trainer._track_num_input_tokens(theirs, inputs)
     assert ours.state.num_input_tokens_seen == theirs.state.num_input_tokens_seen == 12
+    ours.model.main_input_name = "inputs_embeds"  # not among the inputs: Trainer counts nothing (and warns)
+    _Trainer._track_num_input_tokens(ours, inputs)
+    assert ours.state.num_input_tokens_seen == 12

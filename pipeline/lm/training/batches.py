@@ -89,8 +89,10 @@ def stretched_batch_positions(attention_mask: torch.Tensor, stretch: float, seed
     same batch and seed give the same positions whatever ran before (a resumed run draws what the uninterrupted
     one drew; accelerate's data loader collates a batch ahead of the step, so torch's global generator cannot)."""
     generator = torch.Generator().manual_seed(seed)
-    counts = attention_mask.sum(dim=1)
+    counts = attention_mask.sum(dim=1).cpu()  # built on the CPU, moved to the mask's device at the end
     width = attention_mask.shape[1]
+    if width == 0:
+        return torch.zeros(attention_mask.shape, dtype=torch.long, device=attention_mask.device)
     drawn = [stretched_positions(n, stretch, generator) for n in counts.tolist() if n]  # the rows' draws, in order
     # Real tokens lead each row (right padding), so the rows' draws concatenated fill the mask's ones in order.
     columns = torch.arange(width)

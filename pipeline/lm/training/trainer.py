@@ -154,7 +154,7 @@ class _Trainer(Trainer):
         """Trainer's count of the real (non-padding) tokens seen, without its gather and tensor round trip where
         there is one process: the same sum."""
         if (self.args.include_num_input_tokens_seen == "non_padding" and self.accelerator.num_processes == 1
-                and "attention_mask" in inputs):
+                and "attention_mask" in inputs and getattr(self.model, "main_input_name", "input_ids") in inputs):
             self.state.num_input_tokens_seen += int(inputs["attention_mask"].sum())
             return
         super()._track_num_input_tokens(inputs)
@@ -209,8 +209,9 @@ def token_accuracy(model: PreTrainedModel, dataset: ConversationDataset, pad_tok
 
     ``sharded``: the model is FSDP-wrapped, so only its root forward gathers the root's parameters (the
     embedding, final norm and head); that forward computes full-vocabulary logits. ``parts`` > 1 (not sharded):
-    the batches are shared out among as many Python threads of one intra-op thread each, computed side by side
-    (the counts are the same: each batch is computed alone, and a row's logits do not depend on the threads).
+    the batches are shared out among as many Python threads, the caller's intra-op threads divided among them,
+    computed side by side: each batch is computed alone, so the counts are those of one thread unless a matmul
+    rounds otherwise on fewer intra-op threads (the CPU default's counts and logits measured the same).
     """
     if len(dataset) == 0:
         return None
@@ -238,7 +239,8 @@ def token_accuracy(model: PreTrainedModel, dataset: ConversationDataset, pad_tok
         return correct, total
 
     if parts > 1 and not sharded and len(starts) > 1:
-        threads = PartThreads(min(parts, len(starts)))
+        n = min(parts, len(starts))
+        threads = PartThreads(n, max(1, torch.get_num_threads() // n))
         try:
             counts = threads.map([functools.partial(torch.no_grad()(count), starts[i::threads.parts])
                                   for i in range(threads.parts)])
