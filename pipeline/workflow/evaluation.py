@@ -21,7 +21,6 @@ from pipeline.core.environment import RULES
 from pipeline.core.generators import world_stats
 from pipeline.core.episodes import metrics, optimal_episode, reachable_episode
 from pipeline.core.texts import DEFAULT_PROMPT, prompt_turns
-from pipeline.core.bulk import bulk_building
 from pipeline.core.world import World, load_worlds
 from pipeline.lm.decoding import BACKENDS, Decoder, make_decoder
 from pipeline.lm.model_settings import ModelSettings
@@ -179,9 +178,8 @@ def _evaluate_validation(settings: EvalSettings, model: ModelSettings, texts: Te
                          finetune: StepRun, test: list[World], data_settings: DataSettings, step_dir: Path
                          ) -> tuple[list[World], list[dict]]:
     """Score the validation worlds (logged as valid_* metrics); returns them and their stats."""
-    with bulk_building():  # the train split's worlds, to keep the validation worlds apart from them
-        train = load_worlds(data.artifact(TRAIN_WORLDS))
-        worlds = validation_worlds(data_settings, settings.n_valid, train, test)
+    train = load_worlds(data.artifact(TRAIN_WORLDS))
+    worlds = validation_worlds(data_settings, settings.n_valid, train, test)
     stats = [asdict(world_stats(world, data_settings.train_max)) for world in worlds]
     records = _evaluate_model(settings, model, texts, finetune.artifact("model"), worlds, stats,
                               step_dir / "episodes_valid.partial.jsonl")
