@@ -123,9 +123,9 @@ def run_job(cfg: DictConfig) -> dict | None:
 
         torch.set_num_threads(cfg.threads)
     if job.train.torch_compile is CompileMode.regional:
-        from pipeline.lm.training.compile import warm_compiler
+        from pipeline.lm.training.compile import compile_beside
 
-        warm_compiler()  # g++ beside the data-build
+        compile_beside(job.model, job.train, job.data.frame)  # the layer compiled beside the data-build
     experiment_id = prepare_store(cfg)
     mlflow.set_tracking_uri(cfg.tracking.uri)
     mlflow.set_experiment(experiment_id=experiment_id)
@@ -148,6 +148,10 @@ def run_job(cfg: DictConfig) -> dict | None:
         log_step_dataset(data, texts, TEST_CONVERSATIONS, "test", "evaluation")
         finetune = step("finetune", lambda d: run_finetune_step(job.model, job.train, cfg.seed, job.data.frame, texts,
                                                                data, d))
+        if job.train.torch_compile is CompileMode.regional:
+            from pipeline.lm.training.compile import stop_beside
+
+            stop_beside()  # a reused training needs no compiled layer
         evaluation = step("eval", lambda d: run_eval(job.eval, job.model, texts, data, finetune, d, job.data))
         results = mlflow.get_run(evaluation.run_id).data.metrics
         mlflow.log_metrics({key: value for key, value in results.items() if key != "step_seconds"})

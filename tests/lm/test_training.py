@@ -345,6 +345,7 @@ def test_bf16_when_faster_follows_the_measured_matmul_peaks(tmp_path, monkeypatc
     # The first two: the two machines of the README's Speed section (Intel Xeon without AMX; AMD EPYC).
     monkeypatch.setattr("pipeline.lm.training.trainer.torch.cuda.is_available", lambda: False)
     monkeypatch.setattr("pipeline.lm.training.compile.cpu_has_bf16", lambda: True)
+    monkeypatch.setattr("pipeline.lm.training.compile._PEAKS", {})  # measured once a process: these measure anew
     measured = []
     monkeypatch.setattr("pipeline.lm.training.compile.matmul_peak",
                         lambda dtype, **_: measured.append(dtype) or {torch.float32: fp32, torch.bfloat16: bf16}[dtype])

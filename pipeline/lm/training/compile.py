@@ -4,14 +4,25 @@ where it measures at least `BF16_MIN_SPEEDUP` times the fp32 rate), and torch.co
 
 from __future__ import annotations
 
+import json
 import logging
 import os
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
 import threading
 import time
 from contextlib import contextmanager
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
+
+if TYPE_CHECKING:
+    from pipeline.lm.model_settings import ModelSettings
+    from pipeline.lm.training.settings import TrainSettings
 
 log = logging.getLogger(__name__)
 
@@ -58,10 +69,15 @@ def matmul_peak(dtype: torch.dtype, *, device: str = "cpu", size: int | None = N
     return best
 
 
+# The CPU's matmul peaks (fp32, bf16) as `use_bf16` measured them, by torch's number of threads: measured once a
+# process, so a job's later steps (and a process compiling beside it: `compile_beside`) take the same decision.
+_PEAKS: dict[int, tuple[float, float]] = {}
+
+
 def use_bf16(requested: bool, when_faster: bool = False) -> bool:
     """bf16 as asked on a GPU. On a CPU, a CPU without bf16 hardware trains in fp32; with ``when_faster``, so
     does one whose bf16 matmuls measure below `BF16_MIN_SPEEDUP` times its fp32 ones (each with a warning
-    naming the reason)."""
+    naming the reason; the peaks measured once a process for each number of threads)."""
     if not requested or torch.cuda.is_available():
         return requested
     if not cpu_has_bf16():
@@ -70,7 +86,10 @@ def use_bf16(requested: bool, when_faster: bool = False) -> bool:
         return False
     if not when_faster:
         return True
-    fp32, bf16 = matmul_peak(torch.float32), matmul_peak(torch.bfloat16)
+    threads = torch.get_num_threads()
+    if threads not in _PEAKS:
+        _PEAKS[threads] = matmul_peak(torch.float32), matmul_peak(torch.bfloat16)
+    fp32, bf16 = _PEAKS[threads]
     if bf16 < BF16_MIN_SPEEDUP * fp32:
         log.warning("train.bf16=true but this CPU multiplies bf16 slower than fp32 (matmul peaks on %d threads: bf16 "
                     "%.0f, fp32 %.0f GFLOP/s): training in fp32 instead", torch.get_num_threads(), bf16, fp32)
@@ -107,22 +126,34 @@ _warming: threading.Thread | None = None
 
 def warm_compiler() -> None:
     """Start, in a background thread, what inductor does once per process before its first compile on a CPU: it
-    checks which vector instructions the C++ compiler can use by compiling six small programs (about 6-7 s of g++
-    on these CPUs with an empty inductor cache; its cache keeps the programs, so later processes only load them).
+    checks which vector instructions the C++ compiler can use by compiling a small program for each (about 7 s of g++
+    one after the other on these CPUs with an empty inductor cache, under 4 s side by side, as here; its cache keeps
+    the programs, so later processes only load them).
     A job calls this before its data-build, whose Python keeps one core busy while g++ runs on the other;
     `compiled_blocks` waits for it. Once per process; nothing where a GPU trains."""
     global _warming
     if _warming is not None or torch.cuda.is_available():
         return
 
-    # Imported here, on the calling thread: the thread below only runs the checks (no imports beside a data-build
+    # Imported here, on the calling thread: the threads below only run the checks (no imports beside a data-build
     # that forks worker processes).
     from torch._inductor import codecache  # noqa: F401 - the checks' compiler cache, imported before the thread
-    from torch._inductor.cpu_vec_isa import pick_vec_isa
+    from torch._inductor import cpu_vec_isa
 
     def check() -> None:
         try:
-            pick_vec_isa()  # cached for the process: the compile that follows asks again and gets the answer
+            # Each instruction set this CPU names checked in a thread of its own (one g++ each), not one after the
+            # other: 3.7-3.9 s against 6.9-7.1 s on the Zen 4 EPYC with its 3 (README, Speed). Each check's answer
+            # is kept per set, so the choice below only reads them.
+            flags = cpu_vec_isa.x86_isa_checker() if platform.machine() in ("x86_64", "AMD64") else []
+            candidates = [isa for isa in cpu_vec_isa.supported_vec_isa_list
+                          if flags and all(flag in flags for flag in str(isa).split())]
+            checks = [threading.Thread(target=bool, args=(isa,), daemon=True) for isa in candidates]
+            for thread in checks:
+                thread.start()
+            for thread in checks:
+                thread.join()
+            cpu_vec_isa.pick_vec_isa()  # cached for the process: the compile that follows asks again, gets the answer
         except Exception as error:  # noqa: BLE001 - the compile itself meets and reports whatever failed here
             log.debug("inductor's vector-instruction checks, ahead of compiling: %s", error)
 
@@ -130,9 +161,68 @@ def warm_compiler() -> None:
     _warming.start()
 
 
+# What `compile_beside` started: the process, and where its output goes.
+_beside: tuple[subprocess.Popen, Path] | None = None
+# The longest a job's first compile waits for the process beside it (it took about 20 s on 2 cores).
+BESIDE_TIMEOUT = 300
+
+
+def compile_beside(model: ModelSettings, train: TrainSettings, frame: int) -> bool:
+    """Start, in a process of its own, one training step of a model shaped as this job's
+    (`pipeline.lm.training.precompile`): the decoder layer compiled while the job builds its data, so the job's
+    first step finds inductor's caches holding its graphs (about 14 s of the CPU default's first step, against
+    about 1.5 s with those caches; README, Speed). Only where the job would compile its layer on a CPU, a model
+    trained from scratch, in this process, on at least two torch threads (a core beside the data-build's Python);
+    otherwise, or the second time in a process, it starts `warm_compiler`'s checks alone (or nothing). bf16 is
+    decided here, for both processes (`use_bf16`). `compiled_blocks` waits for the process; `stop_beside` ends it
+    where the job trains nothing. Returns whether it started the process."""
+    global _beside
+    from pipeline.lm.model_settings import ModelKind
+    from pipeline.lm.training.settings import CompileMode
+
+    if _beside is not None or _warming is not None or torch.cuda.is_available():
+        return False
+    threads = torch.get_num_threads()
+    if (train.torch_compile is not CompileMode.regional or model.kind is not ModelKind.scratch
+            or train.accelerate_config or threads < 2):
+        if train.torch_compile is CompileMode.regional:
+            warm_compiler()
+        return False
+    folder = Path(tempfile.mkdtemp(prefix="cogmap-precompile-"))
+    request = folder / "settings.json"
+    request.write_text(json.dumps({"model": model.to_dict(), "train": train.to_dict(), "frame": frame,
+                                   "threads": threads, "bf16": use_bf16(train.bf16, train.bf16_when_faster)}))
+    output = folder / "output.txt"
+    with output.open("wb") as sink:
+        process = subprocess.Popen([sys.executable, "-m", "pipeline.lm.training.precompile", str(request)],
+                                   stdin=subprocess.DEVNULL, stdout=sink, stderr=subprocess.STDOUT)
+    _beside = (process, output)
+    return True
+
+
+def stop_beside() -> None:
+    """End `compile_beside`'s process if it still runs (a job whose training was reused needs none of it)."""
+    if _beside is not None and _beside[0].poll() is None:
+        _beside[0].kill()
+        _beside[0].wait()
+        shutil.rmtree(_beside[1].parent, ignore_errors=True)
+
+
 def _warmed() -> None:
     if _warming is not None:
         _warming.join()
+    if _beside is not None and _beside[0].returncode is None:
+        process, output = _beside
+        try:
+            process.wait(timeout=BESIDE_TIMEOUT)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+        if process.returncode == 0:
+            shutil.rmtree(output.parent, ignore_errors=True)
+        else:
+            log.warning("compiling the layer beside the data-build ended with exit status %s (its output: %s); "
+                        "compiling it here", process.returncode, output)
 
 
 @contextmanager
