@@ -19,7 +19,6 @@ from pipeline.core.variants import PAPER_ROWS
 from pipeline.core.checks import SettingError
 from pipeline.core.world import WorldError
 from pipeline.lm.model_settings import ModelKind
-from pipeline.lm.training.settings import CompileMode
 from pipeline.workflow.config import ConfigError, JobSettings, UndefinedCell, config_hash, register_configs, validate
 from pipeline.workflow.data_build import TEST_CONVERSATIONS, TRAIN_CONVERSATIONS, TextSettings, log_step_dataset, run_data_build
 from pipeline.workflow.evaluation import run_eval
@@ -122,7 +121,7 @@ def run_job(cfg: DictConfig) -> dict | None:
         import torch
 
         torch.set_num_threads(cfg.threads)
-    if job.train.torch_compile is CompileMode.regional:
+    if job.train.torch_compile.blocks:
         from pipeline.lm.training.compile import compile_beside
 
         compile_beside(job.model, job.train, job.data.frame)  # the layer compiled beside the data-build
@@ -148,7 +147,7 @@ def run_job(cfg: DictConfig) -> dict | None:
         log_step_dataset(data, texts, TEST_CONVERSATIONS, "test", "evaluation")
         finetune = step("finetune", lambda d: run_finetune_step(job.model, job.train, cfg.seed, job.data.frame, texts,
                                                                data, d))
-        if job.train.torch_compile is CompileMode.regional:
+        if job.train.torch_compile.blocks:
             from pipeline.lm.training.compile import stop_beside
 
             stop_beside()  # a reused training needs no compiled layer

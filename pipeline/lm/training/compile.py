@@ -178,14 +178,13 @@ def compile_beside(model: ModelSettings, train: TrainSettings, frame: int) -> bo
     where the job trains nothing. Returns whether it started the process."""
     global _beside
     from pipeline.lm.model_settings import ModelKind
-    from pipeline.lm.training.settings import CompileMode
 
     if _beside is not None or _warming is not None or torch.cuda.is_available():
         return False
     threads = torch.get_num_threads()
-    if (train.torch_compile is not CompileMode.regional or model.kind is not ModelKind.scratch
+    if (not train.torch_compile.blocks or model.kind is not ModelKind.scratch
             or train.accelerate_config or threads < 2):
-        if train.torch_compile is CompileMode.regional:
+        if train.torch_compile.blocks:
             warm_compiler()
         return False
     folder = Path(tempfile.mkdtemp(prefix="cogmap-precompile-"))
@@ -256,19 +255,54 @@ def compiled_blocks(model: torch.nn.Module, torch_compile: str, release_gil: boo
     computing parts of a batch overlap (`pipeline.lm.training.parts`); the kernels are the same. It waits for
     `warm_compiler`'s checks, if a job started them.
     """
-    if torch_compile != "regional":
+    if torch_compile not in ("regional", "stacked"):
         yield
         return
-    blocks = [block for module in model.modules() if isinstance(module, torch.nn.ModuleList) and len(module) > 1
-              and len({type(block) for block in module}) == 1 for block in module]
+    lists = [module for module in model.modules() if isinstance(module, torch.nn.ModuleList) and len(module) > 1
+             and len({type(block) for block in module}) == 1]
     _warmed()  # the vector-instruction checks `warm_compiler` started: one thread compiles at a time
-    for block in blocks:
-        block.compile(dynamic=True, options={"cpp_wrapper": True} if release_gil else None)
+    options = {"cpp_wrapper": True} if release_gil else None
+    stacked = [blocks for blocks in lists if torch_compile == "stacked" and type(blocks) is torch.nn.ModuleList]
+    apart = [block for blocks in lists if blocks not in stacked for block in blocks]
+    for blocks in stacked:
+        blocks.__class__ = _StackedBlocks
+        blocks._in_turn = torch.compile(_in_turn(list(blocks)), dynamic=True, options=options)
+    for block in apart:
+        block.compile(dynamic=True, options=options)
     try:
         with compile_settings():
             yield
     finally:
-        for block in blocks:
+        for blocks in stacked:
+            blocks.__class__ = torch.nn.ModuleList
+            del blocks._in_turn
+        for block in apart:
             block._compiled_call_impl = None  # what nn.Module.compile set: calls go to the eager forward again
         torch._dynamo.reset()
 
+
+
+def _in_turn(blocks: list[torch.nn.Module]):
+    """One call that runs ``blocks`` in turn, each on the hidden states the one before returned (a transformers 5
+    decoder layer's return) with the arguments the model gives every layer."""
+
+    def run(hidden_states, *args, **kwargs):
+        for block in blocks:
+            hidden_states = block(hidden_states, *args, **kwargs)
+        return hidden_states
+
+    return run
+
+
+class _StackedBlocks(torch.nn.ModuleList):
+    """A model's ModuleList of blocks while `compiled_blocks` stacks them: the same modules under the same names
+    (state dicts, checkpoints and iteration unchanged), but the slice of all of them, which a transformers model
+    loops over in its forward (``self.layers[:num_hidden_layers]``), is the one compiled call that runs them in
+    turn."""
+
+    _in_turn: object
+
+    def __getitem__(self, index):
+        if isinstance(index, slice) and range(len(self))[index] == range(len(self)):
+            return [self._in_turn]
+        return super().__getitem__(index)

@@ -416,7 +416,7 @@ def _finetune(model, tokenizer, fmt, conversations, settings, output_dir, seed, 
     side_by_side = settings.batch_threads > 1 and threads >= settings.batch_threads
     if side_by_side:
         trainer.part_threads = PartThreads(settings.batch_threads, threads // settings.batch_threads,
-                                           compile_settings if settings.torch_compile is CompileMode.regional
+                                           compile_settings if settings.torch_compile.blocks
                                            else contextlib.nullcontext)
         if isinstance(trainer.optimizer, MuonAdamW):  # its step shared out among the same threads
             trainer.optimizer.side_by_side = trainer.part_threads
