@@ -101,11 +101,11 @@ def test_no_process_beside_where_the_job_would_not_compile_its_layers_here(chang
 
 def test_the_process_beside_takes_the_jobs_settings_and_a_failure_costs_only_its_compile(
         no_process_yet, monkeypatch, caplog):
-    started = []
+    started, real = [], subprocess.Popen
 
     def popen(command, **kwargs):
         started.append(command)
-        return subprocess.Popen([sys.executable, "-c", "raise SystemExit(3)"], **kwargs)
+        return real([sys.executable, "-c", "raise SystemExit(3)"], **kwargs)
 
     monkeypatch.setattr(compile_module.subprocess, "Popen", popen)
     monkeypatch.setattr(compile_module, "matmul_peak", lambda dtype, **_: {torch.float32: 300.0}.get(dtype, 100.0))
@@ -130,7 +130,8 @@ def test_the_process_beside_takes_the_jobs_settings_and_a_failure_costs_only_its
 
 
 def test_a_reused_training_ends_the_process_beside(no_process_yet, monkeypatch):
-    monkeypatch.setattr(compile_module.subprocess, "Popen", lambda command, **kwargs: subprocess.Popen(
+    real = subprocess.Popen
+    monkeypatch.setattr(compile_module.subprocess, "Popen", lambda command, **kwargs: real(
         [sys.executable, "-c", "import time; time.sleep(60)"], **kwargs))
     monkeypatch.setattr(torch, "get_num_threads", lambda: 2)
     assert compile_module.compile_beside(ModelSettings(**TINY), TrainSettings(torch_compile="stacked"), 6)
