@@ -19,6 +19,7 @@ from pipeline.core.variants import PAPER_ROWS
 from pipeline.core.checks import SettingError
 from pipeline.core.world import WorldError
 from pipeline.lm.model_settings import ModelKind
+from pipeline.lm.training.precompile import end_early
 from pipeline.workflow.config import ConfigError, JobSettings, UndefinedCell, config_hash, register_configs, validate
 from pipeline.workflow.data_build import TEST_CONVERSATIONS, TRAIN_CONVERSATIONS, TextSettings, log_step_dataset, run_data_build
 from pipeline.workflow.evaluation import run_eval
@@ -125,6 +126,8 @@ def run_job(cfg: DictConfig) -> dict | None:
         from pipeline.lm.training.compile import compile_beside
 
         compile_beside(job.model, job.train, job.data.frame)  # the layer compiled beside the data-build
+    else:
+        end_early()  # the process the command line started: nothing to compile
     experiment_id = prepare_store(cfg)
     mlflow.set_tracking_uri(cfg.tracking.uri)
     mlflow.set_experiment(experiment_id=experiment_id)

@@ -4,14 +4,12 @@ where it measures at least `BF16_MIN_SPEEDUP` times the fp32 rate), and torch.co
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import platform
 import shutil
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 from contextlib import contextmanager
@@ -122,18 +120,22 @@ def dynamo_environment():
 
 
 _warming: threading.Thread | None = None
+_join_checks = True  # whether `compiled_blocks` waits for `_warming` (`warm_compiler`'s wait)
 
 
-def warm_compiler() -> None:
+def warm_compiler(wait: bool = True) -> None:
     """Start, in a background thread, what inductor does once per process before its first compile on a CPU: it
     checks which vector instructions the C++ compiler can use by compiling a small program for each (about 7 s of g++
     one after the other on these CPUs with an empty inductor cache, under 4 s side by side, as here; its cache keeps
     the programs, so later processes only load them).
     A job calls this before its data-build, whose Python keeps one core busy while g++ runs on the other;
-    `compiled_blocks` waits for it. Once per process; nothing where a GPU trains."""
-    global _warming
+    `compiled_blocks` waits for it, or with ``wait=False`` compiles meanwhile (dynamo's and AOTAutograd's work
+    needs no answer; inductor's asks for it, and a check asked twice is built once: inductor locks each one's
+    file). Once per process; nothing where a GPU trains."""
+    global _warming, _join_checks
     if _warming is not None or torch.cuda.is_available():
         return
+    _join_checks = wait
 
     # Imported here, on the calling thread: the threads below only run the checks (no imports beside a data-build
     # that forks worker processes).
@@ -168,33 +170,32 @@ BESIDE_TIMEOUT = 300
 
 
 def compile_beside(model: ModelSettings, train: TrainSettings, frame: int) -> bool:
-    """Start, in a process of its own, one training step of a model shaped as this job's
-    (`pipeline.lm.training.precompile`): the decoder layer compiled while the job builds its data, so the job's
-    first step finds inductor's caches holding its graphs (about 14 s of the CPU default's first step, against
-    about 1.5 s with those caches; README, Speed). Only where the job would compile its layer on a CPU, a model
-    trained from scratch, in this process, on at least two torch threads (a core beside the data-build's Python);
-    otherwise, or the second time in a process, it starts `warm_compiler`'s checks alone (or nothing). bf16 is
-    decided here, for both processes (`use_bf16`). `compiled_blocks` waits for the process; `stop_beside` ends it
-    where the job trains nothing. Returns whether it started the process."""
+    """Hand a process of its own this job's settings for one training step of a model shaped as the job's
+    (`pipeline.lm.training.precompile`: the process `precompile.start_early` started with the command line, which
+    has imported meanwhile, or one started now): the decoder layer compiled while the job builds its data, so the
+    job's first step finds inductor's caches holding its graphs (about 14 s of the CPU default's first step,
+    against about 2 s with those caches; README, Speed). Only where the job would compile its layers on a CPU, a
+    model trained from scratch, in this process, on at least two torch threads; otherwise, or the second time in a
+    process, the early process is ended and `warm_compiler`'s checks start alone (or nothing). bf16 is decided
+    here, for both processes (`use_bf16`). `compiled_blocks` waits for the process; `stop_beside` ends it where
+    the job trains nothing. Returns whether a process compiles."""
     global _beside
     from pipeline.lm.model_settings import ModelKind
+    from pipeline.lm.training import precompile
 
-    if _beside is not None or _warming is not None or torch.cuda.is_available():
-        return False
+    early = precompile.take()
     threads = torch.get_num_threads()
-    if (not train.torch_compile.blocks or model.kind is not ModelKind.scratch
-            or train.accelerate_config or threads < 2):
-        if train.torch_compile.blocks:
+    if (_beside is not None or _warming is not None or torch.cuda.is_available() or not train.torch_compile.blocks
+            or model.kind is not ModelKind.scratch or train.accelerate_config or threads < 2):
+        if early is not None:
+            precompile.send(early[0], None)
+        if train.torch_compile.blocks and _beside is None and not torch.cuda.is_available():
             warm_compiler()
         return False
-    folder = Path(tempfile.mkdtemp(prefix="cogmap-precompile-"))
-    request = folder / "settings.json"
-    request.write_text(json.dumps({"model": model.to_dict(), "train": train.to_dict(), "frame": frame,
-                                   "threads": threads, "bf16": use_bf16(train.bf16, train.bf16_when_faster)}))
-    output = folder / "output.txt"
-    with output.open("wb") as sink:
-        process = subprocess.Popen([sys.executable, "-m", "pipeline.lm.training.precompile", str(request)],
-                                   stdin=subprocess.DEVNULL, stdout=sink, stderr=subprocess.STDOUT)
+    bf16 = use_bf16(train.bf16, train.bf16_when_faster)  # measured before a process starts beside it
+    process, output = early or precompile.start()
+    precompile.send(process, {"model": model.to_dict(), "train": train.to_dict(), "frame": frame, "threads": threads,
+                              "bf16": bf16})
     _beside = (process, output)
     return True
 
@@ -208,7 +209,7 @@ def stop_beside() -> None:
 
 
 def _warmed() -> None:
-    if _warming is not None:
+    if _warming is not None and _join_checks:
         _warming.join()
     if _beside is not None and _beside[0].returncode is None:
         process, output = _beside
@@ -238,7 +239,10 @@ def compile_settings():
 @contextmanager
 def compiled_blocks(model: torch.nn.Module, torch_compile: str, release_gil: bool = False):
     """With ``regional``, compile every block of the model's repeated blocks (a decoder's layers: the
-    ModuleLists whose members share a class) in place while the block runs, then put them back to eager.
+    ModuleLists whose members share a class) in place while the block runs, then put them back to eager. With
+    ``stacked``, a plain ModuleList of such blocks is compiled as one call that runs them in turn
+    (`_StackedBlocks`): one graph for all the layers, fewer calls into compiled code a step (about 0.93x the
+    CPU default's step), a longer cold compile (about 37 s against 21 s) and other rounding (README, Speed).
 
     In place, so parameter names, checkpoints and the saved model are those of the plain model. Blocks of one
     class share their compiled code, so a 4-layer model compiles one layer, once: with dynamic shapes, one graph
@@ -260,15 +264,16 @@ def compiled_blocks(model: torch.nn.Module, torch_compile: str, release_gil: boo
         return
     lists = [module for module in model.modules() if isinstance(module, torch.nn.ModuleList) and len(module) > 1
              and len({type(block) for block in module}) == 1]
-    _warmed()  # the vector-instruction checks `warm_compiler` started: one thread compiles at a time
     options = {"cpp_wrapper": True} if release_gil else None
     stacked = [blocks for blocks in lists if torch_compile == "stacked" and type(blocks) is torch.nn.ModuleList]
     apart = [block for blocks in lists if blocks not in stacked for block in blocks]
+    # Compiled calls made (inductor's modules imported: about 1 s) while `compile_beside`'s process may still run.
     for blocks in stacked:
         blocks.__class__ = _StackedBlocks
         blocks._in_turn = torch.compile(_in_turn(list(blocks)), dynamic=True, options=options)
     for block in apart:
         block.compile(dynamic=True, options=options)
+    _warmed()  # the checks `warm_compiler` started (one thread compiles at a time), or the process beside
     try:
         with compile_settings():
             yield
