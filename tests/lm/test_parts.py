@@ -196,3 +196,57 @@ def test_a_job_on_fewer_threads_than_parts_keeps_its_batches_whole(data, tmp_pat
 
     whole, parts = weights("whole"), weights("parts", batch_threads=2)
     assert all(torch.equal(whole[k], parts[k]) for k in whole)  # one thread: the parts would only cost time
+
+
+def test_a_spare_call_runs_once_on_the_thread_that_finished_first_and_first_on_the_caller():
+    pool = PartThreads(2)
+    try:
+        ran = []
+        slow = threading.Event()
+        pool.run([lambda: 1, lambda: 2], spare=lambda: ran.append(("first", threading.current_thread().name)))
+        assert ran == [("first", "MainThread")]  # the first run's parts ran one after the other, then the spare
+        ran.clear()
+
+        def part(name):
+            def run():
+                if name == "slow":
+                    slow.wait(10)  # the other part finishes first and takes the spare
+                return name
+            return run
+
+        def spare():
+            ran.append(threading.current_thread().name)
+            slow.set()
+
+        assert pool.run([part("slow"), part("fast")], spare=spare) == ["slow", "fast"]
+        assert ran == ["batch-part-1"]
+        assert pool.run([lambda: 3, lambda: 4]) == [3, 4] and ran == ["batch-part-1"]  # once
+    finally:
+        pool.close()
+
+
+def test_batches_fetched_ahead_are_the_batches_in_their_order_over_an_epochs_end(data, tmp_path, monkeypatch):
+    # 40 conversations in batches of 4: an epoch of 10 steps, then the next epoch's first batches.
+    from pipeline.lm.training import trainer as trainer_module
+
+    settings = dict(max_steps=13, report_to=(), logging_steps=1, save_steps=100, learning_rate=1e-2,
+                    per_device_batch_size=4, torch_threads=2, optimizer="muon", batch_threads=2)
+    runs, fetch, hooked = {}, trainer_module._Ahead.__call__, trainer_module._Trainer.training_step
+    for ahead in (False, True):
+        seen, fetched = [], []
+        monkeypatch.setattr(trainer_module._Trainer, "fetch_ahead", ahead)
+        monkeypatch.setattr(trainer_module._Ahead, "__call__",
+                            lambda self, fetched=fetched: fetched.append(1) or fetch(self))
+
+        def training_step(self, model, inputs, num_items_in_batch=None, seen=seen):
+            seen.append(inputs["input_ids"].tolist())
+            return hooked(self, model, inputs, num_items_in_batch)
+
+        monkeypatch.setattr(trainer_module._Trainer, "training_step", training_step)
+        result, weights = trained(data, tmp_path / str(ahead), **settings)
+        monkeypatch.setattr(trainer_module._Trainer, "training_step", hooked)
+        runs[ahead] = (seen, result, weights, len(fetched))
+    (plain, r0, w0, n0), (ahead, r1, w1, n1) = runs[False], runs[True]
+    assert ahead == plain and n0 == 0
+    assert n1 == 13 - 1  # every step's batch but the first run's and the one after the epoch's end
+    assert r1.final_loss == r0.final_loss and all(torch.equal(w0[k], w1[k]) for k in w0)

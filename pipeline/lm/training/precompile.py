@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import os
+import select
 import shutil
 import subprocess
 import sys
@@ -28,6 +29,9 @@ from typing import Sequence
 # Command-line flags with which `python -m pipeline.run` runs no job: no process is started for them.
 _NO_JOB_FLAGS = {"--help", "-h", "--hydra-help", "--info", "-i", "--cfg", "-c", "--shell-completion", "-sc",
                  "--version"}
+# How long the process waits for its settings: a job sends them seconds after its command line starts; a sweep
+# whose jobs run in processes of their own (hydra/launcher=local2, SLURM) sends none, and the process ends.
+SETTINGS_TIMEOUT = 120
 # The process `start_early` started, and the file its output goes to, until `take` hands them on.
 _early: tuple[subprocess.Popen, Path] | None = None
 
@@ -101,8 +105,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     from pipeline.lm.training.settings import TrainSettings
     from pipeline.lm.training.trainer import finetune
 
-    line = sys.stdin.readline()
-    if not line.strip():  # no settings: the job compiles nothing here
+    line = sys.stdin.readline() if select.select([sys.stdin], [], [], SETTINGS_TIMEOUT)[0] else ""
+    if not line.strip():  # no settings: the job compiles nothing here (or its jobs run in other processes)
         shutil.rmtree(folder, ignore_errors=True)
         return
     plain = json.loads(line)
