@@ -58,8 +58,6 @@ class PartThreads:
         self._inbox = [queue.Queue() for _ in range(n)]
         self._done: queue.Queue = queue.Queue()
         self._compiled = False
-        self._spare: list[Callable] = []  # `run`'s spare call, until a thread claims it
-        self._claim = threading.Lock()
         for i in range(n):
             threading.Thread(target=self._work, args=(i, intra_op, settings), daemon=True,
                              name=f"batch-part-{i}").start()
@@ -72,28 +70,17 @@ class PartThreads:
                 if call is None:
                     return
                 try:
-                    outcome = (True, call())
+                    self._done.put((True, call()))
                 except BaseException as error:  # handed to the caller, raised there
-                    outcome = (False, error)
-                spare = self._claimed()  # claimed before the result is handed on: the caller finds it taken
-                self._done.put(outcome)
-                if spare is not None:
-                    spare()
+                    self._done.put((False, error))
 
-    def run(self, calls: Sequence[Callable], spare: Callable | None = None) -> list:
+    def run(self, calls: Sequence[Callable]) -> list:
         """Each call's result, in order. The calls run side by side; the first time, and for any call that
-        would make dynamo compile again, one at a time on the first thread. ``spare``, when the calls run side by
-        side, runs after them on the thread that finished first (its core would wait for the other's), once: it
-        is taken by the time this returns, and may still be running (it says itself when it is done); the first
-        time, the caller runs it after the calls."""
+        would make dynamo compile again, one at a time on the first thread."""
         if not self._compiled:
             results = [self._one(call) for call in calls]
             self._compiled = True
-            if spare is not None:
-                spare()
             return results
-        if spare is not None:
-            self._spare.append(spare)
         with torch.compiler.set_stance("fail_on_recompile"):
             outcome = self._side_by_side(calls)
         return [value if ok else self._one(calls[index]) for index, (ok, value) in enumerate(outcome)]
@@ -119,10 +106,6 @@ class PartThreads:
             if not ok and not _is_recompile(result):
                 raise result
         return outcome
-
-    def _claimed(self) -> Callable | None:
-        with self._claim:
-            return self._spare.pop() if self._spare else None
 
     def _one(self, call: Callable):
         self._inbox[0].put(_Tagged(0, call))

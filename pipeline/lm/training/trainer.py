@@ -14,7 +14,6 @@ import dataclasses
 import functools
 import logging
 import os
-import threading
 import time
 from pathlib import Path
 from typing import Sequence
@@ -81,17 +80,10 @@ class _Trainer(Trainer):
     micro-batch first, so they are those of the uncut run. `finetune` gives the same threads Muon's step.
 
     With ``labelled_logits`` a training batch's loss is `labelled_loss` (the head at the labelled positions only),
-    except where the whole model is compiled (``torch_compile=full``: its compiled forward computes the loss).
-
-    With ``part_threads`` and one micro-batch a step, the next step's batch is fetched (collated, its labels
-    counted) while this step's parts run, on the part thread that finishes first (`_Ahead`): the same batches in
-    the same order, off the step's serial path; not after an epoch's last batch (the next comes from another
-    iterator)."""
+    except where the whole model is compiled (``torch_compile=full``: its compiled forward computes the loss)."""
 
     position_stretch: float = 1.0
     part_threads: PartThreads | None = None
-    fetch_ahead: bool = True
-    _ahead: "_Ahead | None" = None
     labelled_logits: bool = False
     _warned_head: bool = False
     _draw: tuple[int, int] = (-1, 0)   # (global step, micro-batches drawn in it)
@@ -123,20 +115,6 @@ class _Trainer(Trainer):
                             ", ".join(PLAIN_HEAD_MODELS))
         return super().compute_loss(model, inputs, return_outputs=return_outputs, num_items_in_batch=num_items_in_batch)
 
-    def get_batch_samples(self, epoch_iterator, num_batches, device):
-        ahead, self._ahead = self._ahead, None
-        if ahead is not None and ahead.taken and ahead.iterator is epoch_iterator and ahead.num_batches == num_batches:
-            fetched = ahead.result()
-        else:
-            if ahead is not None and ahead.taken:
-                raise RuntimeError("a batch was fetched ahead from another iterator than the one the step reads")
-            fetched = super().get_batch_samples(epoch_iterator, num_batches, device)
-        if (self.part_threads is not None and self.fetch_ahead and self.args.gradient_accumulation_steps == 1
-                and not self.accelerator.gradient_state.end_of_dataloader):
-            self._ahead = _Ahead(functools.partial(Trainer.get_batch_samples, self, epoch_iterator, num_batches,
-                                                   device), epoch_iterator, num_batches)
-        return fetched
-
     def training_step(self, model, inputs, num_items_in_batch=None):
         if self.part_threads is None:
             return super().training_step(model, inputs, num_items_in_batch)
@@ -146,10 +124,7 @@ class _Trainer(Trainer):
                            self.data_collator.pad_to_multiple_of)
         step = super().training_step
         calls = [functools.partial(step, model, part, num_items_in_batch) for part in parts]
-        ahead = self._ahead if self._ahead is not None and not self._ahead.taken else None
-        if ahead is not None:
-            ahead.taken = True  # `run` runs it, once, whichever way it computes the parts
-        losses = self.part_threads.run(calls, spare=ahead)
+        losses = self.part_threads.run(calls)
         return torch.stack(losses).sum()
 
     def floating_point_ops(self, inputs) -> int:
@@ -196,31 +171,6 @@ class _Trainer(Trainer):
 # Causal LMs whose logits are their output head's plain output and whose loss is transformers' causal-LM loss
 # (no logit soft-capping or scaling after the head), for which `labelled_loss` computes what their forward does.
 PLAIN_HEAD_MODELS = ("LlamaForCausalLM", "SmolLM3ForCausalLM")
-
-
-class _Ahead:
-    """A step's batches fetched ahead (`_Trainer.get_batch_samples`), by whichever thread calls it first."""
-
-    def __init__(self, fetch, iterator, num_batches: int):
-        self.fetch, self.iterator, self.num_batches = fetch, iterator, num_batches
-        self.taken = False  # handed to a `PartThreads.run`, which runs it
-        self._done = threading.Event()
-        self._outcome: tuple[bool, object] | None = None
-
-    def __call__(self) -> None:
-        try:
-            self._outcome = (True, self.fetch())
-        except BaseException as error:  # raised where the step asks for its batch
-            self._outcome = (False, error)
-        finally:
-            self._done.set()
-
-    def result(self):
-        self._done.wait()
-        ok, value = self._outcome
-        if not ok:
-            raise value
-        return value
 
 
 def labelled_loss(model: PreTrainedModel, inputs: dict[str, torch.Tensor],
