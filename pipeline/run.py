@@ -6,7 +6,7 @@ import sys
 if __name__ == "__main__":
     # Before this process's own imports: the process that compiles the job's layers beside its data-build imports
     # meanwhile (pipeline/lm/training/precompile.py; it ends at once where the job compiles nothing).
-    from pipeline.lm.training.precompile import start_early
+    from pipeline.lm.training.beside import start_early
 
     start_early(sys.argv[1:])
 

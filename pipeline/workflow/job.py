@@ -19,7 +19,7 @@ from pipeline.core.variants import PAPER_ROWS
 from pipeline.core.checks import SettingError
 from pipeline.core.world import WorldError
 from pipeline.lm.model_settings import ModelKind
-from pipeline.lm.training.precompile import end_early
+from pipeline.lm.training.beside import end_early
 from pipeline.workflow.config import ConfigError, JobSettings, UndefinedCell, config_hash, register_configs, validate
 from pipeline.workflow.data_build import TEST_CONVERSATIONS, TRAIN_CONVERSATIONS, TextSettings, log_step_dataset, run_data_build
 from pipeline.workflow.evaluation import run_eval

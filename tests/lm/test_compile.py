@@ -17,7 +17,7 @@ from pipeline.lm.model_settings import ModelSettings
 from pipeline.lm.models import build_scratch_model, load_model
 from pipeline.lm.tokenizer import build_word_tokenizer
 from pipeline.lm.training import compile as compile_module
-from pipeline.lm.training import precompile
+from pipeline.lm.training import beside
 from pipeline.lm.training.precompile import made_up_conversations
 from pipeline.lm.training.settings import TrainSettings
 from pipeline.lm.training.trainer import finetune
@@ -32,7 +32,7 @@ needs_compiler = pytest.mark.skipif(cxx_compiler() is None or not PYTHON_H.is_fi
 def no_process_yet(monkeypatch):
     """`compile_beside` and `warm_compiler` as in a fresh process, on a CPU."""
     monkeypatch.setattr(compile_module, "_beside", None)
-    monkeypatch.setattr(precompile, "_early", None)
+    monkeypatch.setattr(beside, "_early", None)
     monkeypatch.setattr(compile_module, "_warming", None)
     monkeypatch.setattr(compile_module, "_PEAKS", {})
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
@@ -89,7 +89,7 @@ def test_the_made_up_conversations_are_made_of_words_the_tokenizer_has():
 @pytest.mark.parametrize("change", [dict(model=dict(kind="hf", path="somewhere")), dict(threads=1),
                                     dict(train=dict(torch_compile="none")), dict(cuda=True)])
 def test_no_process_beside_where_the_job_would_not_compile_its_layers_here(change, no_process_yet, monkeypatch):
-    monkeypatch.setattr(precompile.subprocess, "Popen", lambda *a, **k: pytest.fail("started a process"))
+    monkeypatch.setattr(beside.subprocess, "Popen", lambda *a, **k: pytest.fail("started a process"))
     monkeypatch.setattr(compile_module, "warm_compiler", lambda: warmed.append(True))
     monkeypatch.setattr(torch.cuda, "is_available", lambda: change.get("cuda", False))
     monkeypatch.setattr(torch, "get_num_threads", lambda: change.get("threads", 2))
@@ -110,7 +110,7 @@ def test_the_process_beside_takes_the_jobs_settings_and_a_failure_costs_only_its
         keep = f"import sys; open({str(received)!r}, 'w').write(sys.stdin.read()); raise SystemExit(3)"
         return real([sys.executable, "-c", keep], **kwargs)
 
-    monkeypatch.setattr(precompile.subprocess, "Popen", popen)
+    monkeypatch.setattr(beside.subprocess, "Popen", popen)
     monkeypatch.setattr(compile_module, "matmul_peak", lambda dtype, **_: {torch.float32: 300.0}.get(dtype, 100.0))
     monkeypatch.setattr(compile_module, "cpu_has_bf16", lambda: True)
     monkeypatch.setattr(torch, "get_num_threads", lambda: 2)
@@ -133,26 +133,26 @@ def test_the_process_beside_takes_the_jobs_settings_and_a_failure_costs_only_its
 
 
 def test_the_process_started_with_the_command_line_imports_then_takes_the_settings_or_ends(monkeypatch):
-    assert precompile._early is None
-    precompile.start_early(["--help"])
-    assert precompile._early is None  # no job: no process
-    precompile.start_early(["tracking.root=x"])
-    process, output = precompile._early
+    assert beside._early is None
+    beside.start_early(["--help"])
+    assert beside._early is None  # no job: no process
+    beside.start_early(["tracking.root=x"])
+    process, output = beside._early
     try:
-        assert precompile.take() == (process, output) and precompile.take() is None  # handed on once
-        precompile.send(process, None)  # a job that compiles nothing here ends it
+        assert beside.take() == (process, output) and beside.take() is None  # handed on once
+        beside.send(process, None)  # a job that compiles nothing here ends it
         assert process.wait(timeout=120) == 0
         assert not output.parent.exists()
     finally:
-        monkeypatch.setattr(precompile, "_early", None)
+        monkeypatch.setattr(beside, "_early", None)
         if process.poll() is None:
             process.kill()
 
 
 def test_a_job_that_compiles_nothing_here_ends_the_early_process(no_process_yet, monkeypatch):
     ended = []
-    monkeypatch.setattr(precompile, "take", lambda: (FakeProcess(), Path("nowhere")))
-    monkeypatch.setattr(precompile, "send", lambda process, settings: ended.append(settings))
+    monkeypatch.setattr(beside, "take", lambda: (FakeProcess(), Path("nowhere")))
+    monkeypatch.setattr(beside, "send", lambda process, settings: ended.append(settings))
     monkeypatch.setattr(torch, "get_num_threads", lambda: 1)
     assert not compile_module.compile_beside(ModelSettings(**TINY), TrainSettings(torch_compile="regional"), 6)
     assert ended == [None]
@@ -165,7 +165,7 @@ class FakeProcess:
 
 def test_a_reused_training_ends_the_process_beside(no_process_yet, monkeypatch):
     real = subprocess.Popen
-    monkeypatch.setattr(precompile.subprocess, "Popen", lambda command, **kwargs: real(
+    monkeypatch.setattr(beside.subprocess, "Popen", lambda command, **kwargs: real(
         [sys.executable, "-c", "import time; time.sleep(60)"], **kwargs))
     monkeypatch.setattr(torch, "get_num_threads", lambda: 2)
     assert compile_module.compile_beside(ModelSettings(**TINY), TrainSettings(torch_compile="stacked"), 6)

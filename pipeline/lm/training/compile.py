@@ -171,7 +171,7 @@ BESIDE_TIMEOUT = 300
 
 def compile_beside(model: ModelSettings, train: TrainSettings, frame: int) -> bool:
     """Hand a process of its own this job's settings for one training step of a model shaped as the job's
-    (`pipeline.lm.training.precompile`: the process `precompile.start_early` started with the command line, which
+    (`pipeline.lm.training.precompile`: the process `beside.start_early` started with the command line, which
     has imported meanwhile, or one started now): the decoder layer compiled while the job builds its data, so the
     job's first step finds inductor's caches holding its graphs (about 14 s of the CPU default's first step,
     against about 2 s with those caches; README, Speed). Only where the job would compile its layers on a CPU, a
@@ -181,20 +181,20 @@ def compile_beside(model: ModelSettings, train: TrainSettings, frame: int) -> bo
     the job trains nothing. Returns whether a process compiles."""
     global _beside
     from pipeline.lm.model_settings import ModelKind
-    from pipeline.lm.training import precompile
+    from pipeline.lm.training import beside
 
-    early = precompile.take()
-    threads = torch.get_num_threads()
+    early = beside.take()
+    threads = train.torch_threads or torch.get_num_threads()  # what the job's training will run on
     if (_beside is not None or _warming is not None or torch.cuda.is_available() or not train.torch_compile.blocks
             or model.kind is not ModelKind.scratch or train.accelerate_config or threads < 2):
         if early is not None:
-            precompile.send(early[0], None)
+            beside.send(early[0], None)
         if train.torch_compile.blocks and _beside is None and not torch.cuda.is_available():
             warm_compiler()
         return False
     bf16 = use_bf16(train.bf16, train.bf16_when_faster)  # measured before a process starts beside it
-    process, output = early or precompile.start()
-    precompile.send(process, {"model": model.to_dict(), "train": train.to_dict(), "frame": frame, "threads": threads,
+    process, output = early or beside.start()
+    beside.send(process, {"model": model.to_dict(), "train": train.to_dict(), "frame": frame, "threads": threads,
                               "bf16": bf16})
     _beside = (process, output)
     return True

@@ -3,10 +3,10 @@ conversations, in a process of its own, so that inductor's on-disk caches hold t
 before the job's first step asks for it (`pipeline.lm.training.compile.compile_beside` hands it the job's settings,
 beside the data-build).
 
-The process starts with the command line (`start_early`, from ``python -m pipeline.run``): it imports torch,
-transformers and the trainer while the job's own process imports, on the core that would otherwise wait, then
-reads the job's settings (one line of JSON) from its standard input; an empty input ends it (a job that compiles
-nothing here). The compiled layer does not depend on the words: the same layer class and sizes, the same training
+The process starts with the command line (`pipeline.lm.training.beside.start_early`, from ``python -m
+pipeline.run``): it imports torch, transformers and the trainer while the job's own process imports, on the core
+that would otherwise wait, then reads the job's settings (one line of JSON) from its standard input; an empty
+input, or none within `SETTINGS_TIMEOUT`, ends it (a job that compiles nothing here). The compiled layer does not depend on the words: the same layer class and sizes, the same training
 settings (bf16 as the job decided it, batch parts, the part threads' C++ wrapper) and the same number of torch
 threads give the same graphs, so the job's own compile finds them (dynamo still traces; inductor's and
 AOTAutograd's caches give the rest). Nothing of it reaches the job but those caches; a failure here costs the job
@@ -19,62 +19,11 @@ import json
 import os
 import select
 import shutil
-import subprocess
 import sys
 import tempfile
 from dataclasses import replace
 from pathlib import Path
 from typing import Sequence
-
-# Command-line flags with which `python -m pipeline.run` runs no job: no process is started for them.
-_NO_JOB_FLAGS = {"--help", "-h", "--hydra-help", "--info", "-i", "--cfg", "-c", "--shell-completion", "-sc",
-                 "--version"}
-# How long the process waits for its settings: a job sends them seconds after its command line starts; a sweep
-# whose jobs run in processes of their own (hydra/launcher=local2, SLURM) sends none, and the process ends.
-SETTINGS_TIMEOUT = 120
-# The process `start_early` started, and the file its output goes to, until `take` hands them on.
-_early: tuple[subprocess.Popen, Path] | None = None
-
-
-def start() -> tuple[subprocess.Popen, Path]:
-    """The process, started: it imports, then waits for its settings on its standard input."""
-    output = Path(tempfile.mkdtemp(prefix="cogmap-precompile-")) / "output.txt"
-    with output.open("wb") as sink:
-        process = subprocess.Popen([sys.executable, "-m", "pipeline.lm.training.precompile", str(output.parent)],
-                                   stdin=subprocess.PIPE, stdout=sink, stderr=subprocess.STDOUT)
-    return process, output
-
-
-def start_early(argv: Sequence[str]) -> None:
-    """`start` the process at the command line's start, unless ``argv`` asks for no job (help, config)."""
-    global _early
-    if _early is None and not set(argv) & _NO_JOB_FLAGS:
-        _early = start()
-
-
-def take() -> tuple[subprocess.Popen, Path] | None:
-    """The process `start_early` started, if it still waits (once: a later caller gets None)."""
-    global _early
-    early, _early = _early, None
-    return early if early is not None and early[0].poll() is None else None
-
-
-def end_early() -> None:
-    """End the process `start_early` started, if it waits (a job that compiles nothing here)."""
-    early = take()
-    if early is not None:
-        send(early[0], None)
-
-
-def send(process: subprocess.Popen, settings: dict | None) -> None:
-    """Hand the process its settings; None ends it (its folder removed)."""
-    try:
-        if settings is not None:
-            process.stdin.write((json.dumps(settings) + "\n").encode())
-        process.stdin.close()
-    except (BrokenPipeError, OSError):  # it ended already: the job compiles for itself
-        pass
-
 
 # One conversation for each row of a batch: each a few dozen words, no two of one length.
 _CONVERSATIONS = 16
@@ -101,6 +50,7 @@ def main(argv: Sequence[str] | None = None) -> None:
 
     from pipeline.lm.model_settings import ModelSettings
     from pipeline.lm.models import make_model, make_tokenizer
+    from pipeline.lm.training.beside import SETTINGS_TIMEOUT
     from pipeline.lm.training.compile import warm_compiler
     from pipeline.lm.training.settings import TrainSettings
     from pipeline.lm.training.trainer import finetune
@@ -111,7 +61,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         return
     plain = json.loads(line)
     # Inductor's checks of the C++ compiler (g++) while the model is built and dynamo traces: after the settings,
-    # so the job's measure of the matmul peaks (`use_bf16`) had the cores to itself.
+    # so no g++ ran beside the job's measure of its matmul peaks (`use_bf16`).
     warm_compiler(wait=False)
     torch.set_num_threads(plain["threads"])
     model_settings = ModelSettings(**plain["model"])
