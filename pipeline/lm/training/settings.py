@@ -30,12 +30,12 @@ class CompileMode(str, Enum):
     none = "none"
     regional = "regional"   # each repeated block (decoder layer) in place; one graph shared by the layers
     stacked = "stacked"     # the repeated blocks, in place, as one graph that runs them in turn
+    full = "full"           # the whole model, through Trainer
 
     @property
     def blocks(self) -> bool:
         """Whether `pipeline.lm.training.compile.compiled_blocks` compiles the model's repeated blocks."""
         return self in (CompileMode.regional, CompileMode.stacked)
-    full = "full"           # the whole model, through Trainer
 
 
 @dataclass
