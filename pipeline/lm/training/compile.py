@@ -9,7 +9,6 @@ import os
 import platform
 import shutil
 import subprocess
-import sys
 import threading
 import time
 from contextlib import contextmanager
@@ -195,7 +194,7 @@ def compile_beside(model: ModelSettings, train: TrainSettings, frame: int) -> bo
     bf16 = use_bf16(train.bf16, train.bf16_when_faster)  # measured before a process starts beside it
     process, output = early or beside.start()
     beside.send(process, {"model": model.to_dict(), "train": train.to_dict(), "frame": frame, "threads": threads,
-                              "bf16": bf16})
+                          "bf16": bf16})
     _beside = (process, output)
     return True
 
@@ -284,7 +283,6 @@ def compiled_blocks(model: torch.nn.Module, torch_compile: str, release_gil: boo
         for block in apart:
             block._compiled_call_impl = None  # what nn.Module.compile set: calls go to the eager forward again
         torch._dynamo.reset()
-
 
 
 def _in_turn(blocks: list[torch.nn.Module]):
