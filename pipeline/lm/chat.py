@@ -16,7 +16,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional, Protocol, Sequence
+from typing import Callable, Optional, Protocol, Sequence
 
 IGNORE_INDEX = -100
 # A gpt turn's optional key: the [start, end) character spans of its value that are no loss targets (encoded
@@ -100,7 +100,7 @@ def _value_pieces(turn: dict) -> list[tuple[str, bool]]:
 _BATCH = 4096
 
 
-def _plain_backend(tokenizer: TextTokenizer):
+def plain_backend(tokenizer: TextTokenizer):
     """The Rust tokenizer behind a transformers fast tokenizer whose ``encode`` is the backend's alone (its class
     overrides no encoding method), set as ``encode`` sets it before each call: no padding, no truncation (an
     earlier call, or the tokenizer's file, may have left either on the backend) and special tokens split as the
@@ -123,9 +123,9 @@ def _plain_backend(tokenizer: TextTokenizer):
 
 
 def _encode_all(tokenizer: TextTokenizer, texts: Sequence[str]) -> list[list[int]]:
-    """`_encode` of each text. A transformers fast tokenizer (`_plain_backend`) has its Rust backend encode them
+    """`_encode` of each text. A transformers fast tokenizer (`plain_backend`) has its Rust backend encode them
     in batches, in parallel and without a Python call a text: the ids ``encode`` returns."""
-    backend = _plain_backend(tokenizer)
+    backend = plain_backend(tokenizer)
     if backend is None:
         return [_encode(tokenizer, text) for text in texts]
     nonempty = [text for text in texts if text]
@@ -147,12 +147,15 @@ def encode_conversation(
 
 
 def encode_conversations(
-    tokenizer: TextTokenizer, fmt: ChatFormat, conversations: Sequence[Sequence[dict]]
+    tokenizer: TextTokenizer, fmt: ChatFormat, conversations: Sequence[Sequence[dict]],
+    encode_texts: Callable[[Sequence[str]], list[list[int]]] | None = None,
 ) -> list[tuple[list[int], list[int]]]:
-    """`encode_conversation` of each conversation, their pieces encoded together (`_encode_all`: the CPU
+    """`encode_conversation` of each conversation, their pieces encoded together: by ``encode_texts`` when given
+    (it must give `_encode`'s ids: `pipeline.lm.tokenizer.word_level_encoder`), else `_encode_all` (the CPU
     default's 49,000 training conversations took 13.3 s one piece at a time on a 2-core EPYC, 6.8 s in batches)."""
     pieces = [_pieces(fmt, turns, generation_prompt=False) for turns in conversations]
-    encoded = iter(_encode_all(tokenizer, [text for conversation in pieces for text, _ in conversation]))
+    texts = [text for conversation in pieces for text, _ in conversation]
+    encoded = iter(encode_texts(texts) if encode_texts is not None else _encode_all(tokenizer, texts))
     result = []
     for conversation in pieces:
         ids, labels = [], []

@@ -13,14 +13,15 @@ unknown cell.
 
 from __future__ import annotations
 
+import json
 import re
 from functools import lru_cache
-from typing import Iterable
+from typing import Callable, Iterable, Sequence
 
 from tokenizers import Regex, Tokenizer, decoders, models, pre_tokenizers
 from transformers import PreTrainedTokenizerFast
 
-from pipeline.lm.chat import WORD_LEVEL_FORMAT
+from pipeline.lm.chat import WORD_LEVEL_FORMAT, plain_backend
 from pipeline.lm.model_settings import NEWLINES, NUMBERS
 
 # How a number outside a cell is cut (`ModelSettings.numbers`): one piece a number, with its leading space
@@ -58,6 +59,8 @@ def pieces(text: str, numbers: str = "whole", newlines: str = "own") -> list[str
 
 _PIECE_RES = {(numbers, newlines): re.compile(piece_pattern(numbers, newlines))
               for numbers in NUMBERS for newlines in NEWLINES}
+# The same regexes by their pattern, as a saved tokenizer's pre-tokenizer names it (`word_level_encoder`).
+_PATTERN_RES = {regex.pattern: regex for regex in _PIECE_RES.values()}
 
 
 # Cached: the instruction turn, the longest, repeats in every conversation.
@@ -129,3 +132,43 @@ def build_word_tokenizer(texts: Iterable[str], frame: int = 20, numbers: str = "
         clean_up_tokenization_spaces=False,
     )
 
+
+
+def word_level_encoder(tokenizer) -> Callable[[Sequence[str]], list[list[int]]] | None:
+    """For a tokenizer this module built (or its saved copy), a function that gives each text's
+    ``tokenizer.encode(text, add_special_tokens=False)`` ids: a plain text (`_PLAIN`) through Python's regex and
+    the vocabulary (each added token's string its own id, as the tokenizer matches them before pre-tokenizing;
+    any other piece its word's id, or ``<unk>``'s), any other text through the tokenizer itself. The CPU default's
+    200,000 training texts: 1.6 s against 3.9 s through the Rust backend on two threads, the same ids (README,
+    Speed). None for any other tokenizer: its saved state must show no normalizer, one of this module's piece
+    patterns split ``isolated``, a word-level model, added tokens that match as they are written, and special
+    tokens not split (`chat.plain_backend`: encoding not overridden)."""
+    backend = plain_backend(tokenizer)
+    if backend is None or backend.encode_special_tokens or not isinstance(backend.model, models.WordLevel):
+        return None  # before reading the whole state: a subword tokenizer's is megabytes
+    state = json.loads(backend.to_str())
+    split, model, added = state.get("pre_tokenizer") or {}, state.get("model") or {}, state.get("added_tokens") or []
+    regex = _PATTERN_RES.get((split.get("pattern") or {}).get("Regex"))
+    if (state.get("normalizer") is not None or split.get("type") != "Split" or split.get("behavior") != "Isolated"
+            or split.get("invert") or regex is None or model.get("type") != "WordLevel" or not added
+            or any(token.get(flag) for token in added for flag in ("lstrip", "rstrip", "single_word", "normalized"))):
+        return None
+    vocab, unk = model["vocab"], model["vocab"].get(model.get("unk_token"))
+    if unk is None:
+        return None
+    ids = {token["content"]: token["id"] for token in added}
+    # Longest first, as the tokenizer matches added tokens; the group keeps them in `split`'s output.
+    specials = re.compile("(" + "|".join(map(re.escape, sorted(ids, key=len, reverse=True))) + ")")
+
+    def encode(text: str) -> list[int]:
+        if not _PLAIN.fullmatch(text):
+            return tokenizer.encode(text, add_special_tokens=False) if text else []
+        out: list[int] = []
+        for index, segment in enumerate(specials.split(text)):
+            if index % 2:
+                out.append(ids[segment])
+            elif segment:
+                out += [vocab.get(piece, unk) for piece in regex.findall(segment)]
+        return out
+
+    return lambda texts: [encode(text) for text in texts]

@@ -4,10 +4,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fastchat_reference import render_conversation
-from pipeline.lm.chat import WORD_LEVEL_FORMAT, encode_conversation
+from pipeline.lm.chat import WORD_LEVEL_FORMAT, encode_conversation, encode_conversations
 from pipeline.core.generators import GeneratorConfig, generate_worlds
 from pipeline.core.texts import conversation
-from pipeline.lm.tokenizer import SPECIAL_TOKENS, build_word_tokenizer, coverage_text, piece_census, pieces
+from pipeline.lm.tokenizer import (
+    SPECIAL_TOKENS, build_word_tokenizer, coverage_text, piece_census, pieces, word_level_encoder,
+)
 
 WORLDS = generate_worlds(30, 0, GeneratorConfig(size_x=(2, 5), size_y=(2, 5), frame=8))
 TEXTS = [turn["value"] for w in WORLDS for turn in conversation(w, "fwd", "marking-deadend", "reachable")]
@@ -109,3 +111,32 @@ def test_a_conversation_encodes_as_its_whole_rendered_text():
             turns = conversation(world, "bwd", "marking-deadend", mode, prompt="paper")
             ids, _ = encode_conversation(TOKENIZER, WORD_LEVEL_FORMAT, turns)
             assert ids == TOKENIZER.encode(render_conversation(WORD_LEVEL_FORMAT, turns), add_special_tokens=False)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.text(alphabet="()-, 0123456789abcupdownleftright\n:.'<>/shumangpt\té", max_size=80))
+def test_the_python_encoder_gives_the_tokenizers_ids_for_any_text(text):
+    # Markers anywhere (whole or cut), unknown words, a tab, a non-ASCII letter (the tokenizer's own path).
+    encode = word_level_encoder(TOKENIZER)
+    for sample in (text, f"<s>{text}</s>", f"<human>{text}<gpt> {text}"):
+        assert encode([sample]) == [TOKENIZER.encode(sample, add_special_tokens=False)]
+
+
+def test_the_python_encoder_serves_saved_copies_and_conversations_alike(tmp_path):
+    from transformers import AutoTokenizer
+
+    TOKENIZER.save_pretrained(tmp_path)
+    loaded = AutoTokenizer.from_pretrained(tmp_path)
+    turns = [conversation(world, "bwd", "marking-deadend", "optimal") for world in WORLDS]
+    for tokenizer in (TOKENIZER, loaded):
+        encode = word_level_encoder(tokenizer)
+        assert encode is not None and encode(["", "up\n(1, 2)"]) == [[], tokenizer.encode("up\n(1, 2)", add_special_tokens=False)]
+        assert encode_conversations(tokenizer, WORD_LEVEL_FORMAT, turns, encode) == \
+            encode_conversations(tokenizer, WORD_LEVEL_FORMAT, turns)
+
+
+def test_no_python_encoder_for_other_tokenizers(llama3_tokenizer):
+    assert word_level_encoder(llama3_tokenizer) is None  # a subword (BPE) tokenizer
+    split = build_word_tokenizer(TEXTS, frame=8)
+    split.split_special_tokens = True  # markers read as text: not what the Python encoder does
+    assert word_level_encoder(split) is None

@@ -20,6 +20,7 @@ import torch
 from transformers import PreTrainedTokenizerBase
 
 from pipeline.lm.chat import IGNORE_INDEX, ChatFormat, encode_conversations
+from pipeline.lm.tokenizer import word_level_encoder
 from pipeline.lm.training.settings import LONG_CONVERSATIONS
 
 log = logging.getLogger(__name__)
@@ -56,7 +57,7 @@ def tokenize_conversations(
     if long_conversations not in LONG_CONVERSATIONS:
         raise ValueError(f"long_conversations={long_conversations!r}; allowed: {', '.join(LONG_CONVERSATIONS)}")
     examples, dropped, truncated = [], 0, 0
-    for input_ids, labels in encode_conversations(tokenizer, fmt, conversations):
+    for input_ids, labels in encode_conversations(tokenizer, fmt, conversations, word_level_encoder(tokenizer)):
         if len(input_ids) > max_length:
             input_ids, labels = input_ids[:max_length], labels[:max_length]
             if long_conversations == "drop" or all(label == IGNORE_INDEX for label in labels):
