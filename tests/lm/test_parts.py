@@ -116,6 +116,22 @@ def test_map_runs_calls_side_by_side_in_order_and_raises_a_failure_after_all_fin
             pool.map([boom, lambda: ran.append("other")])
         assert ran == ["other"]  # the other call was not abandoned
         assert pool.map([lambda: 3, lambda: 4]) == [3, 4]
+
+        # `meanwhile` runs on the caller's thread while the calls run (all three meet at one barrier); its error is
+        # raised once the calls have finished.
+        three = threading.Barrier(3, timeout=10)
+        caller = []
+        meet = lambda: three.wait()  # noqa: E731
+        shares = pool.map([meet, meet], meanwhile=lambda: caller.append((meet(), threading.current_thread())))
+        assert sorted(shares + [caller[0][0]]) == [0, 1, 2] and caller[0][1] is threading.current_thread()
+
+        def late_boom():
+            raise RuntimeError("meanwhile failed")
+        ran.clear()
+        with pytest.raises(RuntimeError, match="meanwhile failed"):
+            pool.map([lambda: ran.append("x"), lambda: ran.append("y")], meanwhile=late_boom)
+        assert sorted(ran) == ["x", "y"]
+        assert pool.map([lambda: 5, lambda: 6]) == [5, 6]
     finally:
         pool.close()
 

@@ -88,7 +88,7 @@ class SideBySide(Protocol):
 
     parts: int
 
-    def map(self, calls: Sequence[Callable]) -> list: ...
+    def map(self, calls: Sequence[Callable], meanwhile: Callable[[], object] | None = None) -> list: ...
 
 
 class MuonAdamW(torch.optim.Optimizer):
@@ -113,19 +113,28 @@ class MuonAdamW(torch.optim.Optimizer):
         if closure is not None:
             with torch.enable_grad():
                 loss = closure()
-        for group in self.param_groups:
-            live = [p for p in group["params"] if p.grad is not None]
-            if not live:
-                continue
-            if group["muon"]:
-                self._muon(live, group)
-            else:
+        groups = [(group, [p for p in group["params"] if p.grad is not None]) for group in self.param_groups]
+        groups = [(group, live) for group, live in groups if live]
+        adamw = [(group, live) for group, live in groups if not group["muon"]]
+
+        def adamw_steps() -> None:
+            for group, live in adamw:
                 if group["weight_decay"]:
                     torch._foreach_mul_(live, 1 - group["lr"] * group["weight_decay"])
                 self._adamw(live, group)
+
+        pending = adamw_steps
+        for group, live in groups:
+            if group["muon"]:
+                # With worker threads the AdamW groups step on this thread meanwhile (their parameters are others).
+                pending = self._muon(live, group, meanwhile=pending)
+        pending()
         return loss
 
-    def _muon(self, params: list[torch.Tensor], group: dict) -> None:
+    def _muon(self, params: list[torch.Tensor], group: dict, meanwhile: Callable[[], None] = lambda: None):
+        """Muon's step for ``params``; returns what of ``meanwhile`` is left to run. With worker threads
+        (`side_by_side`) ``meanwhile`` runs on this thread while they work (nothing is left); without, none of it
+        has run."""
         stacks = []  # (parameters of one shape, which are tall, their momentum stack)
         for indices in _same_shapes(params):
             ps = [params[i] for i in indices]
@@ -136,11 +145,12 @@ class MuonAdamW(torch.optim.Optimizer):
             together = torch.get_num_threads() > 1
             for ps, tall, buffers in stacks:
                 self._muon_rows(ps, tall, buffers, group, batched=together and len(ps) > 1)
-            return
+            return meanwhile
         # Each worker thread takes its share of every stack's rows, batched as the whole stack would be on two
         # threads: the same numbers (a batched matmul computes each matrix alone), computed side by side.
         workers.map([functools.partial(self._muon_share, stacks, group, i, workers.parts)
-                     for i in range(workers.parts)])
+                     for i in range(workers.parts)], meanwhile=meanwhile)
+        return _nothing
 
     @torch.no_grad()  # grad mode is per thread
     def _muon_share(self, stacks: list, group: dict, share: int, shares: int) -> None:
@@ -203,6 +213,10 @@ class MuonAdamW(torch.optim.Optimizer):
             torch._foreach_sqrt_(denominator)
             torch._foreach_add_(denominator, group["eps"])
             torch._foreach_addcdiv_(ps, exp_avg, denominator, value=-group["lr"] / (1 - beta1**t))
+
+
+def _nothing() -> None:
+    pass
 
 
 def _same_shapes(params: list[torch.Tensor]) -> list[list[int]]:

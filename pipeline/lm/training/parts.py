@@ -85,23 +85,33 @@ class PartThreads:
             outcome = self._side_by_side(calls)
         return [value if ok else self._one(calls[index]) for index, (ok, value) in enumerate(outcome)]
 
-    def map(self, calls: Sequence[Callable]) -> list:
+    def map(self, calls: Sequence[Callable], meanwhile: Callable[[], object] | None = None) -> list:
         """Each call's result, in order, the calls side by side (for work that compiles nothing: Muon's step);
-        the first error a call raised is raised here, once all have finished."""
-        outcome = self._side_by_side(calls)
+        the first error a call raised is raised here, once all have finished. ``meanwhile`` runs on the caller's
+        thread while they work (its error raised once they have finished)."""
+        outcome = self._side_by_side(calls, meanwhile)
         for ok, value in outcome:
             if not ok:
                 raise value
         return [value for _, value in outcome]
 
-    def _side_by_side(self, calls: Sequence[Callable]) -> list[tuple[bool, object]]:
+    def _side_by_side(self, calls: Sequence[Callable], meanwhile: Callable[[], object] | None = None
+                      ) -> list[tuple[bool, object]]:
         for index, call in enumerate(calls):
             self._inbox[index % len(self._inbox)].put(_Tagged(index, call))
+        error = None
+        if meanwhile is not None:
+            try:
+                meanwhile()
+            except BaseException as raised:  # the calls finish first: their threads stay in step with the inboxes
+                error = raised
         outcome: list = [None] * len(calls)
         for _ in calls:
             ok, value = self._done.get()
             index, result = value if ok else (value.part_index, value)
             outcome[index] = (ok, result)
+        if error is not None:
+            raise error
         for ok, result in outcome:
             if not ok and not _is_recompile(result):
                 raise result
