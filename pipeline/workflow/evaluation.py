@@ -8,10 +8,16 @@ alone (the report recomputes its splits from the same records).
 
 from __future__ import annotations
 
+import functools
 import json
+import os
+import signal
+import sys
+import traceback
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Optional
+from typing import Callable, Optional
 
 import mlflow
 from tqdm import tqdm
@@ -115,6 +121,7 @@ def evaluate(
     rules: str = "project",
     steps: str = "numbered",
     plan: str = "moves",
+    show_progress: bool = True,
 ) -> list[dict]:
     """Run every world not yet in ``partial_path`` and return all records in world order.
 
@@ -124,7 +131,8 @@ def evaluate(
     """
     partial = PartialRecords(partial_path)
     done = sum(1 for i in range(len(worlds)) if i in partial.records)
-    progress = tqdm(total=len(worlds), initial=done, desc=f"eval {mode}", unit="world")
+    progress = tqdm(total=len(worlds), initial=done, desc=f"eval {mode}", unit="world",
+                    disable=not show_progress)
     try:
         for start in range(0, len(worlds), chunk_size):
             chunk = [i for i in range(start, min(start + chunk_size, len(worlds))) if i not in partial.records]
@@ -160,29 +168,51 @@ def run_eval(settings: EvalSettings, model: ModelSettings, texts: TextSettings, 
     n = settings.n_worlds or len(worlds)
     if n > len(worlds):
         raise SettingError(f"eval.n_worlds={n} but the test split has {len(worlds)} worlds; allowed: 1..{len(worlds)} or null")
-    records = _evaluate_model(settings, model, texts, finetune.artifact("model"), worlds[:n], stats[:n],
-                              step_dir / "episodes.partial.jsonl")
+    # Local paths, found through the store here: a forked copy of this process must not touch the store.
+    model_dir = finetune.artifact("model")
+    train_worlds = data.artifact(TRAIN_WORLDS) if settings.n_valid else None
+    validate = functools.partial(_evaluate_validation, settings, model, texts, model_dir, train_worlds, worlds,
+                                 data_settings, step_dir)
+    # The validation worlds decoded in a process of its own meanwhile, where that can be (`_decoded_beside`); their
+    # records then wait in their partial file, and `validate` below only reads them.
+    split = None
+    with _decoded_beside(validate if settings.n_valid and settings.backend == "hf" else None):
+        records = _evaluate_model(settings, model, texts, model_dir, worlds[:n], stats[:n],
+                                  step_dir / "episodes.partial.jsonl")
+        if settings.n_valid:
+            split = _validation_split(settings, train_worlds, worlds, data_settings)
     episodes = step_dir / EPISODES_ARTIFACT
     episodes.write_text("".join(json.dumps(record) + "\n" for record in records))
     mlflow.log_artifact(str(episodes))
     mlflow.log_metrics(metrics(records))
-    valid = _evaluate_validation(settings, model, texts, data, finetune, worlds, data_settings, step_dir) \
-        if settings.n_valid else None
+    valid = validate(split=split) if settings.n_valid else None
     if settings.curve:
         n = min(settings.curve_worlds, len(worlds))
         curves = {"": (worlds[:n], stats[:n]), **({VALID_PREFIX: valid} if settings.curve_valid else {})}
         _evaluate_curve(settings, model, texts, finetune, curves, step_dir)
 
 
-def _evaluate_validation(settings: EvalSettings, model: ModelSettings, texts: TextSettings, data: StepRun,
-                         finetune: StepRun, test: list[World], data_settings: DataSettings, step_dir: Path
-                         ) -> tuple[list[World], list[dict]]:
-    """Score the validation worlds (logged as valid_* metrics); returns them and their stats."""
-    train = load_worlds(data.artifact(TRAIN_WORLDS))
+def _validation_split(settings: EvalSettings, train_worlds: str, test: list[World], data_settings: DataSettings
+                      ) -> tuple[list[World], list[dict]]:
+    """The validation worlds (`data_build.validation_worlds`; ``train_worlds``: the train split's file) and their
+    stats."""
+    train = load_worlds(train_worlds)
     worlds = validation_worlds(data_settings, settings.n_valid, train, test)
-    stats = [asdict(world_stats(world, data_settings.train_max)) for world in worlds]
-    records = _evaluate_model(settings, model, texts, finetune.artifact("model"), worlds, stats,
-                              step_dir / "episodes_valid.partial.jsonl")
+    return worlds, [asdict(world_stats(world, data_settings.train_max)) for world in worlds]
+
+
+def _evaluate_validation(settings: EvalSettings, model: ModelSettings, texts: TextSettings, model_dir: str,
+                         train_worlds: str, test: list[World], data_settings: DataSettings, step_dir: Path,
+                         log: bool = True, split: tuple[list[World], list[dict]] | None = None
+                         ) -> tuple[list[World], list[dict]]:
+    """Score the validation worlds (``split``, else `_validation_split`'s) with the model at ``model_dir``, logged as
+    valid_* metrics unless ``log`` is false (their records are then only written to their partial file); returns
+    them and their stats."""
+    worlds, stats = split or _validation_split(settings, train_worlds, test, data_settings)
+    records = _evaluate_model(settings, model, texts, model_dir, worlds, stats,
+                              step_dir / "episodes_valid.partial.jsonl", progress=log)
+    if not log:
+        return worlds, stats
     episodes = step_dir / VALID_EPISODES_ARTIFACT
     episodes.write_text("".join(json.dumps(record) + "\n" for record in records))
     mlflow.log_artifact(str(episodes))
@@ -190,14 +220,67 @@ def _evaluate_validation(settings: EvalSettings, model: ModelSettings, texts: Te
     return worlds, stats
 
 
+@contextmanager
+def _decoded_beside(work: Callable[..., object] | None):
+    """Run ``work(log=False)`` in a forked copy of this process while the block runs here, each on one torch thread
+    (a decoding's small matmuls gain little from a second thread: 0.88x the time; two decodings side by side use
+    both cores), then wait for it. Only with ``work``, ``os.fork``, no GPU and at least two torch threads; otherwise
+    nothing runs beside. The copy writes nothing but what ``work`` writes (its partial records) and ends without
+    Python's exit; whatever it left undone (it failed, or was stopped) the caller's own ``work()`` does after: a
+    resumed eval. The same texts either way (decoding on one thread or two, checked on the default job's worlds)."""
+    import torch
+
+    threads = torch.get_num_threads()
+    if work is None or not hasattr(os, "fork") or torch.cuda.is_available() or threads < 2:
+        yield
+        return
+    sys.stdout.flush()
+    sys.stderr.flush()
+    parent = os.getpid()
+    child = os.fork()
+    if child == 0:  # the copy: only the forking thread lives here; no MLflow, no bars, no exit handlers
+        status = 1
+        try:
+            _end_with_parent(parent)
+            torch.set_num_threads(1)
+            work(log=False)
+            status = 0
+        except BaseException:  # noqa: BLE001 - the caller redoes what is missing and meets the error itself
+            traceback.print_exc()
+        finally:
+            sys.stderr.flush()
+            os._exit(status)
+    torch.set_num_threads(1)
+    try:
+        yield
+        os.waitpid(child, 0)
+        child = 0
+    finally:
+        torch.set_num_threads(threads)
+        if child:  # the block failed or was stopped: the copy's work is no longer wanted
+            os.kill(child, signal.SIGKILL)
+            os.waitpid(child, 0)
+
+
+def _end_with_parent(parent: int) -> None:
+    """Have the kernel end this process when its parent ends (Linux), so a job killed outright leaves no copy
+    writing to its partial records; ends it now if the parent is gone already."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    if os.getppid() != parent:
+        os._exit(1)
+
+
 def _evaluate_model(settings: EvalSettings, model: ModelSettings, texts: TextSettings, model_dir: str,
-                    worlds: list[World], stats: list[dict], partial_path: Path) -> list[dict]:
+                    worlds: list[World], stats: list[dict], partial_path: Path, progress: bool = True) -> list[dict]:
     decoder = make_decoder(model_dir, backend=settings.backend, batch_size=settings.batch_size,
                            max_new_tokens=settings.max_new_tokens, dtype=model.dtype,
                            trust_remote_code=model.trust_remote_code, attn_implementation=model.attn_implementation)
     return evaluate(decoder, worlds, stats, mode=texts.mode, direction=texts.direction or "fwd", variant=texts.variant,
                     max_moves=settings.max_moves, partial_path=partial_path, prompt=texts.prompt, rules=settings.rules,
-                    steps=texts.step_headers, plan=texts.plan_form)
+                    steps=texts.step_headers, plan=texts.plan_form, show_progress=progress)
 
 
 # The curve's rates (`metrics`' names) and the suffix each is logged with after the curve's metric name.
