@@ -133,7 +133,6 @@ def build_word_tokenizer(texts: Iterable[str], frame: int = 20, numbers: str = "
     )
 
 
-
 def word_level_encoder(tokenizer) -> Callable[[Sequence[str]], list[list[int]]] | None:
     """For a tokenizer this module built (or its saved copy), a function that gives each text's
     ``tokenizer.encode(text, add_special_tokens=False)`` ids: a plain text (`_PLAIN`) through Python's regex and
