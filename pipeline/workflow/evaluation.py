@@ -210,7 +210,7 @@ def _evaluate_validation(settings: EvalSettings, model: ModelSettings, texts: Te
     them and their stats."""
     worlds, stats = split or _validation_split(settings, train_worlds, test, data_settings)
     records = _evaluate_model(settings, model, texts, model_dir, worlds, stats,
-                              step_dir / "episodes_valid.partial.jsonl", progress=log)
+                              step_dir / "episodes_valid.partial.jsonl", show_progress=log)
     if not log:
         return worlds, stats
     episodes = step_dir / VALID_EPISODES_ARTIFACT
@@ -274,13 +274,14 @@ def _end_with_parent(parent: int) -> None:
 
 
 def _evaluate_model(settings: EvalSettings, model: ModelSettings, texts: TextSettings, model_dir: str,
-                    worlds: list[World], stats: list[dict], partial_path: Path, progress: bool = True) -> list[dict]:
+                    worlds: list[World], stats: list[dict], partial_path: Path, show_progress: bool = True
+                    ) -> list[dict]:
     decoder = make_decoder(model_dir, backend=settings.backend, batch_size=settings.batch_size,
                            max_new_tokens=settings.max_new_tokens, dtype=model.dtype,
                            trust_remote_code=model.trust_remote_code, attn_implementation=model.attn_implementation)
     return evaluate(decoder, worlds, stats, mode=texts.mode, direction=texts.direction or "fwd", variant=texts.variant,
                     max_moves=settings.max_moves, partial_path=partial_path, prompt=texts.prompt, rules=settings.rules,
-                    steps=texts.step_headers, plan=texts.plan_form, show_progress=progress)
+                    steps=texts.step_headers, plan=texts.plan_form, show_progress=show_progress)
 
 
 # The curve's rates (`metrics`' names) and the suffix each is logged with after the curve's metric name.

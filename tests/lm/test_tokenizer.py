@@ -130,7 +130,8 @@ def test_the_python_encoder_serves_saved_copies_and_conversations_alike(tmp_path
     turns = [conversation(world, "bwd", "marking-deadend", "optimal") for world in WORLDS]
     for tokenizer in (TOKENIZER, loaded):
         encode = word_level_encoder(tokenizer)
-        assert encode is not None and encode(["", "up\n(1, 2)"]) == [[], tokenizer.encode("up\n(1, 2)", add_special_tokens=False)]
+        assert encode is not None
+        assert encode(["", "up\n(1, 2)"]) == [[], tokenizer.encode("up\n(1, 2)", add_special_tokens=False)]
         assert encode_conversations(tokenizer, WORD_LEVEL_FORMAT, turns, encode) == \
             encode_conversations(tokenizer, WORD_LEVEL_FORMAT, turns)
 

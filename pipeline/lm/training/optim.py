@@ -91,6 +91,10 @@ class SideBySide(Protocol):
     def map(self, calls: Sequence[Callable], meanwhile: Callable[[], object] | None = None) -> list: ...
 
 
+def _nothing() -> None:
+    pass
+
+
 class MuonAdamW(torch.optim.Optimizer):
     """Muon for the parameter groups with ``muon=True``, AdamW for the others (see the module docstring)."""
 
@@ -131,7 +135,7 @@ class MuonAdamW(torch.optim.Optimizer):
         pending()
         return loss
 
-    def _muon(self, params: list[torch.Tensor], group: dict, meanwhile: Callable[[], None] = lambda: None):
+    def _muon(self, params: list[torch.Tensor], group: dict, meanwhile: Callable[[], None] = _nothing):
         """Muon's step for ``params``; returns what of ``meanwhile`` is left to run. With worker threads
         (`side_by_side`) ``meanwhile`` runs on this thread while they work (nothing is left); without, none of it
         has run."""
@@ -213,10 +217,6 @@ class MuonAdamW(torch.optim.Optimizer):
             torch._foreach_sqrt_(denominator)
             torch._foreach_add_(denominator, group["eps"])
             torch._foreach_addcdiv_(ps, exp_avg, denominator, value=-group["lr"] / (1 - beta1**t))
-
-
-def _nothing() -> None:
-    pass
 
 
 def _same_shapes(params: list[torch.Tensor]) -> list[list[int]]:

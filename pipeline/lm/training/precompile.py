@@ -6,11 +6,13 @@ beside the data-build).
 The process starts with the command line (`pipeline.lm.training.beside.start_early`, from ``python -m
 pipeline.run``): it imports torch, transformers and the trainer while the job's own process imports, on the core
 that would otherwise wait, then reads the job's settings (one line of JSON) from its standard input; an empty
-input, or none within `SETTINGS_TIMEOUT`, ends it (a job that compiles nothing here). The compiled layer does not depend on the words: the same layer class and sizes, the same training
-settings (bf16 as the job decided it, batch parts, the part threads' C++ wrapper) and the same number of torch
-threads give the same graphs, so the job's own compile finds them (dynamo still traces; inductor's and
-AOTAutograd's caches give the rest). Nothing of it reaches the job but those caches; a failure here costs the job
-nothing but its own compile.
+input, or none within `SETTINGS_TIMEOUT`, ends it (a job that compiles nothing here).
+
+The compiled layer does not depend on the words: the same layer class and sizes, the same training settings (bf16
+as the job decided it, batch parts, the part threads' C++ wrapper) and the same number of torch threads give the
+same graphs, so the job's own compile finds them (dynamo still traces; inductor's and AOTAutograd's caches give
+the rest). Nothing of it reaches the job but those caches; a failure here costs the job nothing but its own
+compile.
 """
 
 from __future__ import annotations
