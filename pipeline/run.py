@@ -2,7 +2,6 @@
 `pipeline.workflow.job`); with `-m`, Hydra sweeps the config groups into several jobs."""
 
 import atexit
-import gc
 import os
 import sys
 
@@ -24,7 +23,6 @@ def _exit_at_once() -> None:
 
 if __name__ == "__main__":
     atexit.register(_exit_at_once)
-    gc.disable()  # the imports build long-lived objects only: no full collection over them (README, Speed)
     # Before this process's own imports: the process that compiles the job's layers beside its data-build imports
     # meanwhile (pipeline/lm/training/precompile.py; it ends at once where the job compiles nothing).
     from pipeline.lm.training.beside import start_early
@@ -35,13 +33,6 @@ import hydra  # noqa: E402 - after the early start above
 from omegaconf import DictConfig  # noqa: E402
 
 from pipeline.workflow import job  # noqa: E402
-
-if __name__ == "__main__":
-    # The objects the imports built are kept out of the collector's later walks: a full collection walked them each
-    # time (about 0.5 s each, five of them while the job created its store and imported its training), and walks
-    # only what was made since now. The job's own objects are collected as before.
-    gc.freeze()
-    gc.enable()
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="config")
