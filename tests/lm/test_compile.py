@@ -43,15 +43,17 @@ def _fxgraph_entries() -> set[str]:
     return {str(path.relative_to(folder)) for path in folder.rglob("*") if path.is_file()}
 
 
-@pytest.mark.slow  # two compiles of a 2-layer stack, about 40 s on 2 cores with an empty cache
+@pytest.mark.slow  # a 2-layer stack and a layer compiled, about 60 s on 2 cores with an empty cache
 @needs_compiler
-def test_stacked_layers_train_what_eager_trains_as_one_graph_and_save_plain_weights(data, tmp_path):
+def test_stacked_layers_train_what_layers_compiled_one_by_one_train_bit_for_bit_and_save_plain_weights(data, tmp_path):
     conversations, tokenizer = data
     steps = 10  # 40 conversations in batches of 4: batches of several widths
-    settings = dict(max_steps=steps, pad_to_multiple_of=1, torch_threads=1, **QUIET)
-    eager = finetune(build_scratch_model(tokenizer, ModelSettings(**TINY), seed=0), tokenizer, WORD_LEVEL_FORMAT,
-                     conversations, TrainSettings(**settings), tmp_path / "eager")
-    model = build_scratch_model(tokenizer, ModelSettings(**TINY), seed=0)
+    settings = dict(max_steps=steps, pad_to_multiple_of=1, torch_threads=1, bf16=True, **QUIET)
+    # The CPU default's widths: in bf16 a stack fused across its layers (no boundary) rounded otherwise at these.
+    shape = ModelSettings(**{**TINY, "hidden_size": 128, "intermediate_size": 512})
+    regional = finetune(build_scratch_model(tokenizer, shape, seed=0), tokenizer, WORD_LEVEL_FORMAT,
+                        conversations, TrainSettings(torch_compile="regional", **settings), tmp_path / "regional")
+    model = build_scratch_model(tokenizer, shape, seed=0)
     layers = model.model.layers
     torch._dynamo.reset()
     graphs = torch._dynamo.utils.counters["stats"]["unique_graphs"]
@@ -70,10 +72,19 @@ def test_stacked_layers_train_what_eager_trains_as_one_graph_and_save_plain_weig
     assert seen == [(1, True, "LlamaDecoderLayer", 1, ["0", "1"])] * steps
     assert torch._dynamo.utils.counters["stats"]["unique_graphs"] - graphs == 1  # ... one graph, for every width
     assert type(layers) is torch.nn.ModuleList and "_in_turn" not in vars(layers)  # ... and a plain list after
-    assert stacked.final_loss == pytest.approx(eager.final_loss, rel=1e-3)
-    a, b = load_model(eager.model_dir).state_dict(), load_model(stacked.model_dir).state_dict()
+    # No kernel spans two layers (a boundary inductor cannot see into), so the numbers are the layers' own.
+    assert stacked.final_loss == regional.final_loss and stacked.mean_loss == regional.mean_loss
+    a, b = load_model(regional.model_dir).state_dict(), load_model(stacked.model_dir).state_dict()
     assert a.keys() == b.keys()
-    assert all(torch.allclose(a[k], b[k], atol=1e-3) for k in a)
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_the_layer_boundary_is_a_copy_forward_and_backward():
+    x = torch.randn(3, 5, 4, requires_grad=True)
+    y = compile_module.layer_boundary(x)
+    assert torch.equal(y, x) and y.data_ptr() != x.data_ptr()
+    (y * torch.arange(4.0)).sum().backward()
+    assert torch.equal(x.grad, torch.arange(4.0).expand(3, 5, 4))
 
 
 def test_the_made_up_conversations_are_made_of_words_the_tokenizer_has():

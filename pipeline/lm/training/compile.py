@@ -240,8 +240,9 @@ def compiled_blocks(model: torch.nn.Module, torch_compile: str, release_gil: boo
     """With ``regional``, compile every block of the model's repeated blocks (a decoder's layers: the
     ModuleLists whose members share a class) in place while the block runs, then put them back to eager. With
     ``stacked``, a plain ModuleList of such blocks is compiled as one call that runs them in turn
-    (`_StackedBlocks`): one graph for all the layers, fewer calls into compiled code a step (about 0.93x the
-    CPU default's step), a longer cold compile (about 37 s against 21 s) and other rounding (README, Speed).
+    (`_StackedBlocks`): one graph for all the layers, fewer calls into compiled code a step (about 0.97x the
+    CPU default's step), a longer cold compile (about 40 s against 23 s) and the same numbers, as no kernel
+    spans two layers (`layer_boundary`; README, Speed).
 
     In place, so parameter names, checkpoints and the saved model are those of the plain model. Blocks of one
     class share their compiled code, so a 4-layer model compiles one layer, once: with dynamic shapes, one graph
@@ -285,12 +286,31 @@ def compiled_blocks(model: torch.nn.Module, torch_compile: str, release_gil: boo
         torch._dynamo.reset()
 
 
+@torch.library.custom_op("cogmap::layer_boundary", mutates_args=())
+def layer_boundary(hidden_states: torch.Tensor) -> torch.Tensor:
+    """A copy of ``hidden_states`` that inductor cannot see into (an operator of its own, run from the compiled
+    graph as an outside call), and the same for the gradient that flows back through it: in a graph of several
+    layers, the kernels of one layer are not fused with the next one's, forward or backward, so each layer's
+    kernels are those of the layer compiled alone and its numbers are the same, bit for bit (`_in_turn`)."""
+    return hidden_states.clone()
+
+
+@layer_boundary.register_fake
+def _(hidden_states: torch.Tensor) -> torch.Tensor:
+    return torch.empty_like(hidden_states)
+
+
+layer_boundary.register_autograd(lambda ctx, grad: layer_boundary(grad))
+
+
 def _in_turn(blocks: list[torch.nn.Module]):
     """One call that runs ``blocks`` in turn, each on the hidden states the one before returned (a transformers 5
-    decoder layer's return) with the arguments the model gives every layer."""
+    decoder layer's return) with the arguments the model gives every layer; a `layer_boundary` between two."""
 
     def run(hidden_states, *args, **kwargs):
-        for block in blocks:
+        for i, block in enumerate(blocks):
+            if i:
+                hidden_states = layer_boundary(hidden_states)
             hidden_states = block(hidden_states, *args, **kwargs)
         return hidden_states
 
