@@ -45,7 +45,7 @@ def _fxgraph_entries() -> set[str]:
 
 @pytest.mark.slow  # a 2-layer stack and a layer compiled, about 60 s on 2 cores with an empty cache
 @needs_compiler
-def test_stacked_layers_train_what_layers_compiled_one_by_one_train_bit_for_bit_and_save_plain_weights(data, tmp_path):
+def test_stacked_layers_train_the_layers_own_numbers_bit_for_bit_and_save_plain_weights(data, tmp_path):
     conversations, tokenizer = data
     steps = 10  # 40 conversations in batches of 4: batches of several widths
     settings = dict(max_steps=steps, pad_to_multiple_of=1, torch_threads=1, bf16=True, **QUIET)
