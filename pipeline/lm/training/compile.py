@@ -241,7 +241,7 @@ def compiled_blocks(model: torch.nn.Module, torch_compile: str, release_gil: boo
     ModuleLists whose members share a class) in place while the block runs, then put them back to eager. With
     ``stacked``, a plain ModuleList of such blocks is compiled as one call that runs them in turn
     (`_StackedBlocks`): one graph for all the layers, fewer calls into compiled code a step (about 0.97x the
-    CPU default's step), a longer cold compile (about 40 s against 23 s) and the same numbers, as no kernel
+    CPU default's step), a longer cold compile (37 s against 26 s on one thread) and the same numbers, as no kernel
     spans two layers (`layer_boundary`; README, Speed).
 
     In place, so parameter names, checkpoints and the saved model are those of the plain model. Blocks of one
