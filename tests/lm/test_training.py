@@ -16,6 +16,7 @@ from pipeline.lm.training.batches import (
 )
 from pipeline.lm.training.compile import cpu_has_bf16, dynamo_environment as _dynamo_environment
 from pipeline.lm.training.entry import TrainRequest, main
+from pipeline.lm.training.parts import PartThreads
 from pipeline.lm.training.settings import TrainSettings
 from pipeline.lm.training.result import RESULT_FILE
 from pipeline.lm.training.trainer import _training_arguments, finetune
@@ -558,10 +559,12 @@ def test_muon_precision_is_off_without_muon_or_bf16():
     assert not TrainSettings(optimizer="muon", bf16=False, muon_bf16=True).muon_bf16
 
 
+@pytest.mark.parametrize("parts", [1, 2, 3])  # on the calling thread; on part threads (the norms shared out)
 @pytest.mark.parametrize("scale", [1e-3, 10.0, float("nan")])  # below max_grad_norm, above it, and a nan gradient
-def test_gradient_clipping_is_accelerates_bit_for_bit(scale):
+def test_gradient_clipping_is_accelerates_bit_for_bit(scale, parts):
     """The trainer skips multiplying by a clip coefficient of exactly 1; otherwise it clips as accelerate does
-    (whose total norm is the norm of the gradients' total norm, which can differ from torch's in the last bit)."""
+    (whose total norm is the norm of the gradients' total norm, which can differ from torch's in the last bit),
+    also with the tensors' norms and the clipping shared out among the part threads."""
     from types import SimpleNamespace
 
     from accelerate import Accelerator
@@ -569,7 +572,7 @@ def test_gradient_clipping_is_accelerates_bit_for_bit(scale):
     from pipeline.lm.training.trainer import _Trainer
 
     def model(seed):
-        net = torch.nn.Sequential(torch.nn.Linear(8, 16), torch.nn.Linear(16, 4))
+        net = torch.nn.Sequential(torch.nn.Linear(8, 16), torch.nn.Linear(16, 4), torch.nn.Linear(4, 300))
         generator = torch.Generator().manual_seed(seed)
         for p in net.parameters():
             p.grad = torch.randn(p.shape, generator=generator) * scale
@@ -577,9 +580,14 @@ def test_gradient_clipping_is_accelerates_bit_for_bit(scale):
 
     ours, theirs = model(0), model(0)
     accelerator = Accelerator(cpu=True)
+    threads = PartThreads(parts) if parts > 1 else None
     trainer = SimpleNamespace(accelerator=accelerator, args=SimpleNamespace(max_grad_norm=1.0, device=torch.device("cpu")),
-                              _has_mixed_mesh_grads=lambda m: False)
-    norm = _Trainer._clip_grad_norm(trainer, ours)
+                              _has_mixed_mesh_grads=lambda m: False, _trained=None, part_threads=threads)
+    try:
+        norm = _Trainer._clip_grad_norm(trainer, ours)
+    finally:
+        if threads is not None:
+            threads.close()
     expected = accelerator.clip_grad_norm_(theirs.parameters(), 1.0)
     torch.testing.assert_close(norm, expected, rtol=0, atol=0, equal_nan=True)
     for a, b in zip(ours.parameters(), theirs.parameters()):

@@ -104,6 +104,9 @@ class MuonAdamW(torch.optim.Optimizer):
         super().__init__(list(groups), defaults)
         self.ns_dtype = ns_dtype
         self.side_by_side: SideBySide | None = None  # worker threads for Muon's step (the trainer's batch parts)
+        # Calls the caller's thread makes after the AdamW groups' step, while the worker threads take Muon's (the
+        # trainer's: the composed rows written anew, the next batch fetched); without workers, after the step.
+        self.meanwhile: list[Callable[[], object]] = []
         self._stacks: dict[tuple, tuple[torch.Tensor, list[torch.Tensor]]] = {}
         for group in self.param_groups:
             if group["muon"]:
@@ -126,6 +129,8 @@ class MuonAdamW(torch.optim.Optimizer):
                 if group["weight_decay"]:
                     torch._foreach_mul_(live, 1 - group["lr"] * group["weight_decay"])
                 self._adamw(live, group)
+            for call in self.meanwhile:
+                call()
 
         pending = adamw_steps
         for group, live in groups:

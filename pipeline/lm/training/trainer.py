@@ -87,6 +87,9 @@ class _Trainer(Trainer):
     labelled_logits: bool = False
     _warned_head: bool = False
     _draw: tuple[int, int] = (-1, 0)   # (global step, micro-batches drawn in it)
+    _trained: tuple | None = None     # (model, its parameters): `_clip_grad_norm`
+    _fetching: tuple | None = None    # (epoch iterator, batches, device) of the last `get_batch_samples`
+    _ahead: tuple | None = None       # (epoch iterator, what `get_batch_samples` returns): `fetch_ahead`'s
     _counted: tuple | None = None     # (model, its non-embedding parameters): `floating_point_ops`
 
     def _with_positions(self, model, inputs):
@@ -94,10 +97,37 @@ class _Trainer(Trainer):
             step, drawn = self._draw
             drawn = drawn + 1 if step == self.state.global_step else 0
             self._draw = (self.state.global_step, drawn)
-            key = (self.args.seed * 1_000_003 + self.state.global_step) * 1_009 + drawn
-            inputs = {**inputs, "position_ids": stretched_batch_positions(inputs["attention_mask"],
-                                                                          self.position_stretch, key)}
+            inputs = self._positioned(inputs, self.state.global_step, drawn)
         return inputs
+
+    def _positioned(self, inputs, step: int, drawn: int):
+        """``inputs`` with the stretched positions of the ``drawn``-th micro-batch of optimizer step ``step``."""
+        key = (self.args.seed * 1_000_003 + step) * 1_009 + drawn
+        return {**inputs, "position_ids": stretched_batch_positions(inputs["attention_mask"], self.position_stretch,
+                                                                    key)}
+
+    def get_batch_samples(self, epoch_iterator, num_batches, device):
+        """Trainer's batches for the next optimizer step, or those `fetch_ahead` took from the same iterator."""
+        ahead, self._ahead = self._ahead, None
+        self._fetching = (epoch_iterator, num_batches, device)
+        if ahead is not None and ahead[0] is epoch_iterator:
+            return ahead[1]
+        return super().get_batch_samples(epoch_iterator, num_batches, device)
+
+    def fetch_ahead(self) -> None:
+        """Take the next optimizer step's batch now (one micro-batch a step), its stretched positions drawn as that
+        step will draw them: `finetune` calls this on the caller's thread while the part threads take Muon's step
+        (`MuonAdamW.meanwhile`), so the collation and the draw leave the time between two steps, when both part
+        threads wait. The same batches in the same order; nothing where this step is the last."""
+        fetching, self._fetching = self._fetching, None
+        if (fetching is None or self.args.gradient_accumulation_steps != 1
+                or self.state.global_step + 1 >= self.state.max_steps):
+            return
+        iterator, _, device = fetching
+        batches, count = super().get_batch_samples(iterator, 1, device)
+        if self.position_stretch > 1:
+            batches = [self._positioned(batch, self.state.global_step + 1, 0) for batch in batches]
+        self._ahead = (iterator, (batches, count))
 
     def compute_loss(self, model, inputs, return_outputs=False, num_items_in_batch=None):
         inputs = self._with_positions(model, inputs)
@@ -144,10 +174,21 @@ class _Trainer(Trainer):
         if (self.accelerator.distributed_type != DistributedType.NO or self.accelerator.scaler is not None
                 or self.args.device.type != "cpu" or self._has_mixed_mesh_grads(model)):
             return super()._clip_grad_norm(model)
-        parameters = [p for p in model.parameters() if p.grad is not None]
-        total = self.accelerator.clip_grad_norm_(parameters, float("inf"))  # the norm alone, as accelerate takes it
+        if self._trained is None or self._trained[0] is not model:  # the parameters listed once, not every step
+            self._trained = (model, list(model.parameters()))
+        parameters = [p for p in self._trained[1] if p.grad is not None]
+        threads = self.part_threads
+        if threads is None:
+            total = self.accelerator.clip_grad_norm_(parameters, float("inf"))  # the norm alone, as accelerate takes it
+        else:  # the same norm, the tensors shared out among the part threads
+            total = grad_norm_side_by_side([p.grad for p in parameters], threads)
         if not total + 1e-6 <= self.args.max_grad_norm:  # torch's coefficient max_norm / (total + 1e-6): below 1 or nan
-            torch.nn.utils.clip_grads_with_norm_(parameters, self.args.max_grad_norm, total)
+            if threads is None:
+                torch.nn.utils.clip_grads_with_norm_(parameters, self.args.max_grad_norm, total)
+            else:  # what clip_grads_with_norm_ multiplies the gradients by, on the part threads
+                coefficient = torch.clamp(self.args.max_grad_norm / (total + 1e-6), max=1.0)
+                threads.map([functools.partial(torch._foreach_mul_, share, coefficient)
+                             for share in _shares([p.grad for p in parameters], threads.parts)])
         return total
 
     def _track_num_input_tokens(self, inputs):
@@ -166,6 +207,27 @@ class _Trainer(Trainer):
             log.info("resumed checkpoint: lm_head.weight is tied to the input embedding (stored once)")
             return
         super()._issue_warnings_after_load(load_result)
+
+
+def grad_norm_side_by_side(grads: list[torch.Tensor], threads: PartThreads) -> torch.Tensor:
+    """What accelerate's ``clip_grad_norm_`` returns on one process for these gradients (torch's total norm: each
+    tensor's norm, then the norm of those; then the norm of that one-element list), each tensor's norm taken on the
+    part threads, the tensors shared out among them in order: the same numbers, on both cores (``_foreach_norm``
+    takes each tensor's norm alone)."""
+    norms = [n for share in threads.map([functools.partial(torch._foreach_norm, share, 2.0)
+                                         for share in _shares(grads, threads.parts)]) for n in share]
+    return torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(torch.stack(norms), 2.0)]), 2)
+
+
+def _shares(tensors: list[torch.Tensor], parts: int) -> list[list[torch.Tensor]]:
+    """``tensors`` cut into at most ``parts`` runs of about equal numbers of elements, in order."""
+    total = sum(t.numel() for t in tensors)
+    shares: list[list[torch.Tensor]] = [[] for _ in range(parts)]
+    seen = 0
+    for t in tensors:
+        shares[min(parts - 1, seen * parts // max(total, 1))].append(t)
+        seen += t.numel()
+    return [share for share in shares if share]
 
 
 # Causal LMs whose logits are their output head's plain output and whose loss is transformers' causal-LM loss
@@ -316,13 +378,24 @@ def composed_rows(trainer: Trainer, tokenizer: PreTrainedTokenizerBase):
     if trainer.is_fsdp_enabled:
         raise ValueError("newlines=composed is not supported with train.accelerate_config (FSDP shards the rows)")
     rows, weight = ComposedRows.of(tokenizer), model.get_input_embeddings().weight
-    callback, hook = _Compose(rows, weight), weight.register_hook(rows.gradient)
-    trainer.add_callback(callback)
+    hook = weight.register_hook(rows.gradient)
+    # With Muon the rows are written right after the AdamW groups' step (the embedding's), while the part threads
+    # take Muon's (`MuonAdamW.meanwhile`): the same rows, outside the time between two steps.
+    optimizer = trainer.optimizer if isinstance(trainer.optimizer, MuonAdamW) else None
+    compose = functools.partial(rows.compose, weight)
+    callback = _Compose(rows, weight)
+    if optimizer is not None:
+        optimizer.meanwhile.append(compose)
+    else:
+        trainer.add_callback(callback)
     try:
         yield
     finally:
         hook.remove()
-        trainer.remove_callback(callback)
+        if optimizer is not None:
+            optimizer.meanwhile.remove(compose)
+        else:
+            trainer.remove_callback(callback)
 
 
 @contextlib.contextmanager
@@ -420,6 +493,7 @@ def _finetune(model, tokenizer, fmt, conversations, settings, output_dir, seed, 
                                            else contextlib.nullcontext)
         if isinstance(trainer.optimizer, MuonAdamW):  # its step shared out among the same threads
             trainer.optimizer.side_by_side = trainer.part_threads
+            trainer.optimizer.meanwhile.append(trainer.fetch_ahead)  # the next batch, during Muon's step
     if any(isinstance(c, ProgressCallback) for c in trainer.callback_handler.callbacks):
         trainer.remove_callback(ProgressCallback)
         trainer.add_callback(BarProgress)
@@ -435,6 +509,7 @@ def _finetune(model, tokenizer, fmt, conversations, settings, output_dir, seed, 
         if trainer.part_threads:
             if isinstance(trainer.optimizer, MuonAdamW):
                 trainer.optimizer.side_by_side = None
+                trainer.optimizer.meanwhile.remove(trainer.fetch_ahead)
             trainer.part_threads.close()
             trainer.part_threads = None
     train_seconds = time.perf_counter() - started
