@@ -212,3 +212,51 @@ def test_a_job_on_fewer_threads_than_parts_keeps_its_batches_whole(data, tmp_pat
 
     whole, parts = weights("whole"), weights("parts", batch_threads=2)
     assert all(torch.equal(whole[k], parts[k]) for k in whole)  # one thread: the parts would only cost time
+
+
+
+def test_the_next_batch_fetched_during_muons_step_trains_the_same_batches_and_weights(data, tmp_path, monkeypatch):
+    """With parts and Muon the trainer takes the next step's batch (and draws its stretched positions) while the
+    part threads take Muon's step: the same batches in the same order, across an epoch's end, and the same weights
+    bit for bit as fetching each batch when its step starts; nothing is fetched for a step after the last."""
+    from pipeline.lm.training import trainer as trainer_module
+
+    settings = dict(max_steps=13, report_to=(), logging_steps=1, save_steps=100, learning_rate=1e-2,
+                    per_device_batch_size=4, torch_threads=2, optimizer="muon", position_stretch=2.0,
+                    batch_threads=2)  # 10 batches an epoch: 13 steps meet the end of the first
+    cls = trainer_module._Trainer
+
+    def run(name, ahead):
+        batches, taken, fetched = [], [], []
+        get, fetch, split = cls.get_batch_samples, cls.fetch_ahead, trainer_module.split_rows
+
+        def get_batch_samples(self, iterator, n, device):
+            taken.append(self._ahead is not None and self._ahead[0] is iterator)
+            return get(self, iterator, n, device)
+
+        def fetch_ahead(self):
+            if ahead:
+                fetch(self)
+                fetched.append(len(self._ahead[1][0]) if self._ahead else None)
+
+        def split_rows(inputs, *args):  # the step's whole batch, its positions drawn
+            batches.append({k: v.clone() for k, v in inputs.items()})
+            return split(inputs, *args)
+
+        with monkeypatch.context() as patch:
+            patch.setattr(cls, "get_batch_samples", get_batch_samples)
+            patch.setattr(cls, "fetch_ahead", fetch_ahead)
+            patch.setattr(trainer_module, "split_rows", split_rows)
+            result, weights = trained(data, tmp_path / name, **settings)
+        return result, weights, batches, taken, fetched
+
+    result, weights, batches, taken, fetched = run("ahead", True)
+    plain, plain_weights, plain_batches, plain_taken, _ = run("plain", False)
+    assert result.global_step == plain.global_step == 13
+    assert taken == [False] + [True] * 9 + [False] + [True] * 2 and not any(plain_taken)  # a new epoch: fetched then
+    assert fetched == [1] * 9 + [0] + [1] * 2 + [None]  # at the epoch's end nothing more; at the last step nothing
+    assert len(batches) == len(plain_batches) == 13
+    assert all(a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+               for a, b in zip(batches, plain_batches))
+    assert "position_ids" in batches[0]
+    assert all(torch.equal(weights[k], plain_weights[k]) for k in weights)

@@ -290,15 +290,16 @@ def test_loss_falls_and_held_out_tokens_are_learned(tokenizer, conversations, tm
     assert result.tokens_trained > 0 and result.tokens_per_second > 0
 
 
-@pytest.mark.parametrize("optimizer", ["adamw", "muon"])
-def test_composed_newlines_train_and_stay_composed(conversations, tmp_path, optimizer):
+@pytest.mark.parametrize("optimizer, parts", [("adamw", 1), ("muon", 1), ("muon", 2)])
+def test_composed_newlines_train_and_stay_composed(conversations, tmp_path, optimizer, parts):
     """newlines=composed: training moves the words' and the newline's rows and keeps every joined row their sum,
-    in the model trained and the model saved (a plain Llama); the same model without it trains its own rows."""
+    in the model trained and the model saved (a plain Llama); the same model without it trains its own rows.
+    With Muon the rows are written during its step (on the part threads' time with parts)."""
     tokenizer = build_word_tokenizer((turn["value"] for turns in conversations for turn in turns), newlines="composed")
     rows = ComposedRows.of(tokenizer)
     model = build_scratch_model(tokenizer, ModelSettings(**TINY, newlines="composed"), seed=0)
     before = model.get_input_embeddings().weight.detach().clone()
-    settings = TrainSettings(max_steps=12, optimizer=optimizer, **QUIET)
+    settings = TrainSettings(max_steps=12, optimizer=optimizer, batch_threads=parts, **{**QUIET, "torch_threads": 2})
     result = finetune(model, tokenizer, WORD_LEVEL_FORMAT, conversations, settings, tmp_path)
     for weight in (model.get_input_embeddings().weight, load_model(result.model_dir).get_input_embeddings().weight):
         torch.testing.assert_close(weight[rows.joined], weight[rows.words] + weight[rows.newline], atol=1e-6, rtol=0)

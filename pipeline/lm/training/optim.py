@@ -18,7 +18,9 @@ element-wise work is a few kernels over the stack, with the same numbers. On mor
 orthogonalized together, as one batch of matmuls (the same numbers, fewer and larger kernels; on one thread the
 batch measured slower, so each matrix goes alone there). With the trainer's part threads (`side_by_side`;
 `TrainSettings.batch_threads`) each thread takes its share of every shape's matrices, batched as on two threads:
-the same numbers, and the caller's own thread free to run on one intra-op thread. The rest of the element-wise
+the same numbers, and the caller's own thread free to run on one intra-op thread: it steps the AdamW groups
+meanwhile, then makes the calls in ``meanwhile`` (the trainer's: the composed rows written anew, the next batch
+fetched), work that would otherwise wait between two steps with both worker threads idle. The rest of the element-wise
 work (weight decay, the AdamW moments) runs as torch's multi-tensor (``_foreach``) kernels: one call for a list of
 tensors.
 """
