@@ -40,7 +40,10 @@ def test_labelled_loss_is_the_models_own_loss_with_its_gradients(data, num_items
     own, own_grads = loss_and_grads(lambda: model(**inputs, num_items_in_batch=num_items).loss)
     ours, our_grads = loss_and_grads(lambda: labelled_loss(model, inputs, num_items))
     assert torch.allclose(ours, own, rtol=1e-6)
-    assert all(torch.allclose(our_grads[n], own_grads[n], atol=1e-7) for n in own_grads)
+    # The same sums in another order: fp32 rounding is relative to a tensor's largest terms, not to each element
+    # (an AVX2-only CPU's kernels put a tied embedding's element of 1.5e-3 1.5e-7 apart, its largest being 0.84).
+    for name, grad in own_grads.items():
+        assert torch.allclose(our_grads[name], grad, rtol=1e-5, atol=1e-6 * grad.abs().max().item()), name
 
 
 def test_a_batch_without_labelled_positions_has_zero_loss_and_gradients(data):
