@@ -2,7 +2,9 @@ import gc
 
 import pytest
 
-from pipeline.core.bulk import bulk_building
+import weakref
+
+from pipeline.core.bulk import bulk_building, walked_once
 
 
 def test_the_collector_is_paused_over_the_block_and_resumes_as_it_was():
@@ -27,3 +29,29 @@ def test_a_collector_that_was_off_stays_off():
         assert not gc.isenabled()
     finally:
         gc.enable()
+
+
+class _Node:
+    def __init__(self):
+        self.me = self  # a reference cycle: only the cyclic collector frees it
+
+
+def test_what_existed_before_the_block_is_left_out_of_its_collections_then_collected_after():
+    old = _Node()
+    gone = weakref.ref(old)
+    with walked_once():
+        assert gc.get_freeze_count() > 0
+        del old
+        young = _Node()
+        made = weakref.ref(young)
+        del young
+        gc.collect()
+        assert made() is None  # what the block made is walked and collected
+        assert gone() is not None  # what existed before is not walked: its cycle survives the block's collection
+    assert gc.get_freeze_count() == 0
+    gc.collect()
+    assert gone() is None  # handed back: collected as before
+    with pytest.raises(RuntimeError):
+        with walked_once():
+            raise RuntimeError("a failed training")
+    assert gc.get_freeze_count() == 0

@@ -446,6 +446,23 @@ def test_packing_keeps_padding_small(tokenizer, conversations, tmp_path):
     assert packed >= 0.95 > padded
 
 
+def test_the_heap_before_training_is_left_out_of_its_collections_and_handed_back(tokenizer, conversations, tmp_path):
+    """accelerate's full collection at the training's start (and any during it) walks only what training made."""
+    import gc
+
+    class Frozen(TrainerCallback):
+        counts: list[int] = []
+
+        def on_train_begin(self, args, state, control, **kwargs):
+            self.counts.append(gc.get_freeze_count())
+
+    settings = TrainSettings(max_steps=2, **QUIET)
+    finetune(tiny_model(tokenizer), tokenizer, WORD_LEVEL_FORMAT, conversations, settings, tmp_path,
+             callbacks=[Frozen()])
+    assert Frozen.counts and Frozen.counts[0] > 10_000  # torch's and transformers' objects, among others
+    assert gc.get_freeze_count() == 0
+
+
 def test_saved_model_reloads_with_its_chat_format(tokenizer, conversations, tmp_path):
     model = tiny_model(tokenizer)
     result = finetune(model, tokenizer, WORD_LEVEL_FORMAT, conversations[:8],

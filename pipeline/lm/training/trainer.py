@@ -25,7 +25,7 @@ from transformers import PreTrainedModel, PreTrainedTokenizerBase, Trainer, Trai
 from transformers.trainer_callback import ProgressCallback
 from transformers.trainer_utils import PREFIX_CHECKPOINT_DIR, get_last_checkpoint
 
-from pipeline.core.bulk import bulk_building
+from pipeline.core.bulk import bulk_building, walked_once
 from pipeline.lm.chat import IGNORE_INDEX, ChatFormat
 from pipeline.lm.models import ComposedRows, save_chat_format
 from pipeline.lm.training.batches import (
@@ -506,7 +506,7 @@ def _finetune(model, tokenizer, fmt, conversations, settings, output_dir, seed, 
     started = time.perf_counter()
     try:
         with compiled_blocks(model, settings.torch_compile, release_gil=side_by_side), \
-                composed_rows(trainer, tokenizer), _main_thread_alone(side_by_side):
+                composed_rows(trainer, tokenizer), _main_thread_alone(side_by_side), walked_once():
             output = trainer.train(resume_from_checkpoint=resume)
     finally:
         if trainer.part_threads:
