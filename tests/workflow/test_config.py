@@ -183,6 +183,8 @@ def test_sweep_files_compose_and_define_the_whole_grid(sweep):
     assert params.direction == "fwd,bwd" and params.mode == "optimal,reachable"
     assert sorted(_sweep_values(params, "variant")) == sorted(PAPER_VARIANTS)
     assert cfg.skip_undefined is True
+    if sweep == "smoke":  # two toy jobs at a time, on one thread each
+        assert cfg.hydra.launcher.n_jobs == 2 and cfg.threads == 1
 
 
 def test_every_sweep_file_is_tested():
