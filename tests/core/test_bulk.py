@@ -1,8 +1,7 @@
 import gc
+import weakref
 
 import pytest
-
-import weakref
 
 from pipeline.core.bulk import bulk_building, walked_once
 

@@ -1,3 +1,4 @@
+import gc
 import json
 import math
 import os
@@ -448,18 +449,16 @@ def test_packing_keeps_padding_small(tokenizer, conversations, tmp_path):
 
 def test_the_heap_before_training_is_left_out_of_its_collections_and_handed_back(tokenizer, conversations, tmp_path):
     """accelerate's full collection at the training's start (and any during it) walks only what training made."""
-    import gc
+    counts = []
 
     class Frozen(TrainerCallback):
-        counts: list[int] = []
-
         def on_train_begin(self, args, state, control, **kwargs):
-            self.counts.append(gc.get_freeze_count())
+            counts.append(gc.get_freeze_count())
 
     settings = TrainSettings(max_steps=2, **QUIET)
     finetune(tiny_model(tokenizer), tokenizer, WORD_LEVEL_FORMAT, conversations, settings, tmp_path,
              callbacks=[Frozen()])
-    assert Frozen.counts and Frozen.counts[0] > 10_000  # torch's and transformers' objects, among others
+    assert counts and counts[0] > 10_000  # torch's and transformers' objects, among others
     assert gc.get_freeze_count() == 0
 
 
