@@ -34,6 +34,8 @@ conversations through `pipeline.lm.training.trainer.finetune`, with the default 
   computed side by side by Python threads): what the parts buy.
 - ``default, logits everywhere``: the default with ``labelled_logits`` false (when the default applies the output
   head and the loss at the labelled positions only): what that buys.
+- ``default, whole last layer``: the default with ``labelled_last_layer`` false (when the default computes its
+  last layer from the first labelled position on): what that buys.
 
 Each run prints two rates: over all its steps (compiling included), and in steady state: the median rate of
 the optimizer steps themselves (forward, backward and update: no batch loading or logging) after the first
@@ -181,7 +183,7 @@ def main() -> None:
     parser.add_argument("--only", choices=("padded-fp32", "packed-fp32", "packed-bf16", "default", "when-faster",
                                            "default, paper prompt", "other-optimizer", "muon-bf16",
                                            "other-attention", "plain-positions", "other-newlines", "whole-batches",
-                                           "all-logits"),
+                                           "all-logits", "whole-last-layer"),
                         action="append", help="run only these (repeatable)")
     args = parser.parse_args()
     if not 0 <= args.skip < args.steps:
@@ -281,6 +283,12 @@ def main() -> None:
     if scope != "none" and train_cfg.labelled_logits:
         runs[all_logits] = runs[default]
         labelled[all_logits] = False
+    # What the last layer from the first labelled position on buys (train.labelled_last_layer): the default without.
+    last: dict[str, bool] = {}  # name: labelled_last_layer where it is not the family's
+    whole_last_layer = f"{default}, whole last layer"
+    if scope != "none" and train_cfg.labelled_last_layer:
+        runs[whole_last_layer] = runs[default]
+        last[whole_last_layer] = False
 
     def switch(name: str, overrides: dict, family_value, baseline_value):
         """A run's value of one switch: its own, else the family's (--train) or the baselines'."""
@@ -289,7 +297,7 @@ def main() -> None:
     selected = {"default": default, "when-faster": when_faster, "other-optimizer": other_optimizer,
                 "muon-bf16": muon_other, "other-attention": attention_run, "plain-positions": plain_positions,
                 "other-newlines": newlines_run, "whole-batches": whole_batches,
-                "all-logits": all_logits}
+                "all-logits": all_logits, "whole-last-layer": whole_last_layer}
     wanted = {selected.get(name, name) for name in args.only or runs}
     rounds: dict[str, list[tuple[float, float]]] = {}  # name: (overall, steady) real tokens/s of each round
     per_token: dict[str, float] = {}  # name: useful training FLOPs per real token of its conversations
@@ -318,6 +326,7 @@ def main() -> None:
             position_stretch=switch(name, stretch, train_cfg.position_stretch, 1.0),
             batch_threads=switch(name, parts, train_cfg.batch_threads, 1),
             labelled_logits=switch(name, labelled, train_cfg.labelled_logits, False),
+            labelled_last_layer=switch(name, last, train_cfg.labelled_last_layer, False),
         )
         clock = StepClock()
         with tempfile.TemporaryDirectory() as out:

@@ -344,6 +344,12 @@ def test_settings_added_since_keep_the_step_hashes_of_finished_runs(monkeypatch)
     # the earlier default's (`own`) runs stay reusable.
     assert hashes("model.newlines=own", toy=False)["data-build"] != new["data-build"]
     assert hashes("model.newlines=own", toy=False)["finetune"] != new["finetune"]
+    # The last layer cut to the trained positions (the CPU default since) rounds otherwise: a new finetune; the runs
+    # before it stay reusable, and without labelled_logits the switch is off and counts nothing.
+    assert hashes("train.labelled_last_layer=false", toy=False)["finetune"] != new["finetune"]
+    assert hashes("train.labelled_last_layer=false", toy=False)["data-build"] == new["data-build"]
+    assert (hashes("train.labelled_logits=false", toy=False)
+            == hashes("train.labelled_logits=false", "train.labelled_last_layer=false", toy=False))
 
 
 @pytest.mark.parametrize("launcher", ["local2", "slurm", "local_submitit"])

@@ -4,6 +4,7 @@ where it measures at least `BF16_MIN_SPEEDUP` times the fp32 rate), and torch.co
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import platform
@@ -256,7 +257,9 @@ def compiled_blocks(model: torch.nn.Module, torch_compile: str, release_gil: boo
     Dynamo's caches are reset afterwards, so the next job in the same process starts under no guards or
     recompile counts of this one (inductor's on-disk cache keeps the compiled kernels). With ``release_gil``
     the compiled graphs run from inductor's C++ wrapper, which releases Python's interpreter lock, so threads
-    computing parts of a batch overlap (`pipeline.lm.training.parts`); the kernels are the same. It waits for
+    computing parts of a batch overlap (`pipeline.lm.training.parts`); the kernels are the same. A ModuleList
+    whose blocks are compiled apart carries ``compile_region`` meanwhile: a function compiled the way they are,
+    once a function (`pipeline.lm.training.last_layer` runs the last block through one). It waits for
     `warm_compiler`'s checks, if a job started them.
     """
     if torch_compile not in ("regional", "stacked"):
@@ -267,12 +270,16 @@ def compiled_blocks(model: torch.nn.Module, torch_compile: str, release_gil: boo
     options = {"cpp_wrapper": True} if release_gil else None
     stacked = [blocks for blocks in lists if torch_compile == "stacked" and type(blocks) is torch.nn.ModuleList]
     apart = [block for blocks in lists if blocks not in stacked for block in blocks]
+    regions = [blocks for blocks in lists if blocks not in stacked]
+    compile_region = functools.cache(lambda function: torch.compile(function, dynamic=True, options=options))
     # Compiled calls made (inductor's modules imported: about 1 s) while `compile_beside`'s process may still run.
     for blocks in stacked:
         blocks.__class__ = _StackedBlocks
         blocks._in_turn = torch.compile(_in_turn(list(blocks)), dynamic=True, options=options)
     for block in apart:
         block.compile(dynamic=True, options=options)
+    for blocks in regions:
+        blocks.compile_region = compile_region
     _warmed()  # the checks `warm_compiler` started (one thread compiles at a time), or the process beside
     try:
         with compile_settings():
@@ -283,6 +290,8 @@ def compiled_blocks(model: torch.nn.Module, torch_compile: str, release_gil: boo
             del blocks._in_turn
         for block in apart:
             block._compiled_call_impl = None  # what nn.Module.compile set: calls go to the eager forward again
+        for blocks in regions:
+            del blocks.compile_region
         torch._dynamo.reset()
 
 

@@ -100,6 +100,10 @@ class TrainSettings:
     # The output head and the loss computed at the labelled (trained) positions only, not at every position: the
     # same loss and gradients, rounded otherwise (pipeline/lm/training/trainer.py: labelled_loss; README, Speed).
     labelled_logits: bool = field(default=False, metadata={"hash_if_set": True})
+    # With labelled_logits, the last decoder layer computed only from the first position a batch trains on (its
+    # keys and values everywhere): the same loss and gradients, rounded otherwise; Llama with eager attention, not
+    # compiled stacked (pipeline/lm/training/last_layer.py; README, Speed). Off without labelled_logits.
+    labelled_last_layer: bool = field(default=False, metadata={"hash_if_set": True})
 
     def __post_init__(self) -> None:
         self.report_to = [self.report_to] if isinstance(self.report_to, str) else list(self.report_to)
@@ -141,6 +145,8 @@ class TrainSettings:
                 "1 with accelerate_config (distributed training splits batches its own way)")
         require(not self.labelled_logits or self.accelerate_config is None, "labelled_logits", self.labelled_logits,
                 "false with accelerate_config (a sharded model computes its head inside its own forward)")
+        if not self.labelled_logits:  # it cuts labelled_logits' forward: nothing to cut without it
+            self.labelled_last_layer = False
         require(self.long_conversations in LONG_CONVERSATIONS, "long_conversations", self.long_conversations,
                 f"one of {', '.join(LONG_CONVERSATIONS)}")
 

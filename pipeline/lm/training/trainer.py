@@ -33,6 +33,7 @@ from pipeline.lm.training.batches import (
     tokenize_conversations,
 )
 from pipeline.lm.training.compile import compile_settings, compiled_blocks, dynamo_environment, use_bf16
+from pipeline.lm.training.last_layer import hidden_from, not_cut, start_of_labels, trims
 from pipeline.lm.training.optim import MuonAdamW, build_optimizer
 from pipeline.lm.training.parts import PartThreads, split_rows
 from pipeline.lm.training.result import CHECKPOINTS_DIR, MODEL_DIR, TrainResult
@@ -88,6 +89,7 @@ class _Trainer(Trainer):
     position_stretch: float = 1.0
     part_threads: PartThreads | None = None
     labelled_logits: bool = False
+    labelled_last_layer: bool = False
     _warned_head: bool = False
     _draw: tuple[int, int] = (-1, 0)   # (global step, micro-batches drawn in it)
     _trained: tuple | None = None     # (model, its parameters): `_clip_grad_norm`
@@ -140,7 +142,7 @@ class _Trainer(Trainer):
             net = self.accelerator.unwrap_model(model)
             if type(net).__name__ in PLAIN_HEAD_MODELS:
                 with self.accelerator.autocast():  # what the prepared model's own forward enters
-                    return labelled_loss(net, inputs, num_items_in_batch)
+                    return labelled_loss(net, inputs, num_items_in_batch, self.labelled_last_layer)
             if not self._warned_head:
                 self._warned_head = True
                 log.warning("train.labelled_logits: %s is not one of %s (models whose logits are their head's "
@@ -239,23 +241,34 @@ PLAIN_HEAD_MODELS = ("LlamaForCausalLM", "SmolLM3ForCausalLM")
 
 
 def labelled_loss(model: PreTrainedModel, inputs: dict[str, torch.Tensor],
-                  num_items_in_batch: torch.Tensor | int | None = None) -> torch.Tensor:
+                  num_items_in_batch: torch.Tensor | int | None = None, last_layer: bool = False) -> torch.Tensor:
     """A causal LM's next-token loss on ``inputs`` (the model's inputs and ``labels``), as its own forward computes
     it (logits upcast to fp32, cross-entropy summed over the labelled positions and divided by
     ``num_items_in_batch``, or averaged over them), with the output head applied at the labelled positions alone:
     the CPU default trains on about two thirds of its positions, and at its vocabulary the head and the loss were
-    about an eighth of a step (README, Speed). The same loss and gradients, rounded otherwise."""
-    logits, targets = head_at_labels(model, inputs)
+    about an eighth of a step (README, Speed). With ``last_layer``, the last decoder layer too is computed only
+    from the first labelled position on, where `pipeline.lm.training.last_layer.trims` the model. The same loss
+    and gradients, rounded otherwise."""
+    logits, targets = head_at_labels(model, inputs, last_layer)
     loss = F.cross_entropy(logits.float(), targets, reduction="sum")
     return loss / (num_items_in_batch if num_items_in_batch is not None else len(targets))
 
 
-def head_at_labels(model: PreTrainedModel, inputs: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+def head_at_labels(model: PreTrainedModel, inputs: dict[str, torch.Tensor], last_layer: bool = False
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
     """The logits at the positions whose next token is labelled (``labels`` beside the model's inputs), computed
-    from the base model's hidden states there alone, and those labels: ``(n, vocabulary)`` and ``(n,)``."""
+    from the base model's hidden states there alone, and those labels: ``(n, vocabulary)`` and ``(n,)``. With
+    ``last_layer`` (and a model `last_layer.trims`), the last layer computed from the first of them on
+    (`last_layer.hidden_from`)."""
     targets = inputs["labels"][:, 1:]
     keep = targets != IGNORE_INDEX
-    hidden = model.base_model(**{k: v for k, v in inputs.items() if k != "labels"}).last_hidden_state
+    model_inputs = {k: v for k, v in inputs.items() if k != "labels"}
+    base = model.base_model
+    if last_layer and trims(base) and set(model_inputs) <= {"input_ids", "attention_mask", "position_ids"}:
+        start = start_of_labels(keep)
+        hidden = hidden_from(base, model_inputs, start)
+        return model.get_output_embeddings()(hidden[:, :-1][keep[:, start:]]), targets[keep]
+    hidden = base(**model_inputs).last_hidden_state
     return model.get_output_embeddings()(hidden[:, :-1][keep]), targets[keep]
 
 
@@ -487,6 +500,11 @@ def _finetune(model, tokenizer, fmt, conversations, settings, output_dir, seed, 
         )
     trainer.position_stretch = settings.position_stretch
     trainer.labelled_logits = settings.labelled_logits
+    trainer.labelled_last_layer = settings.labelled_last_layer
+    if settings.labelled_last_layer:
+        reason = not_cut(model.base_model, settings.torch_compile is CompileMode.stacked)
+        if reason:
+            log.warning("train.labelled_last_layer: %s: its last layer runs at every position", reason)
     threads = torch.get_num_threads()
     # On fewer threads than parts the batch stays whole: parts one after the other measured 0.97x (README, Speed).
     side_by_side = settings.batch_threads > 1 and threads >= settings.batch_threads

@@ -1,0 +1,90 @@
+"""The last decoder layer computed only where the loss reads it (`TrainSettings.labelled_last_layer`).
+
+A causal LM's loss reads the last layer's output at the positions whose next token is labelled: on the CPU
+default, every position from the answer's first token on, and about a third of a conversation's tokens (the
+prompt) come before it. Every earlier layer feeds the later positions through attention's keys and values, so it
+runs everywhere; the last one needs its keys and values everywhere, but its queries, attention output, MLP and
+norms only from the first position any row of the batch trains on (`start_of_labels`). The same loss and
+gradients in exact arithmetic, rounded otherwise: 0.92x to 0.96x a batch part's forward and backward on one
+thread (README, Speed).
+
+For transformers' Llama with eager attention (`trims`): `hidden_from` runs the model's own modules, the layers
+before the last as the model calls them (compiled in place where they are) and the last through
+`last_layer_from`, compiled the way the blocks are (`pipeline.lm.training.compile.compiled_blocks`).
+"""
+
+from __future__ import annotations
+
+import torch
+from transformers.masking_utils import create_causal_mask
+from transformers.models.llama.modeling_llama import eager_attention_forward, rotate_half
+
+# Base models whose forward `hidden_from` reproduces (embedding, rotary positions, the decoder layers, final norm).
+TRIMMED_MODELS = ("LlamaModel",)
+
+
+def trims(base: torch.nn.Module) -> bool:
+    """Whether `hidden_from` computes ``base``'s forward: a Llama base model with eager attention (whose causal mask
+    is a tensor that rows of queries can be cut from) and its layers a plain ModuleList (not compiled stacked,
+    which runs them as one call)."""
+    return (type(base).__name__ in TRIMMED_MODELS and base.config._attn_implementation == "eager"
+            and type(base.layers) is torch.nn.ModuleList)
+
+
+def not_cut(base: torch.nn.Module, stacked: bool) -> str | None:
+    """Why a training of ``base`` (its layers compiled ``stacked`` or not) keeps its whole last layer, or None."""
+    if stacked or not trims(base):
+        return (f"{type(base).__name__} with {base.config._attn_implementation} attention"
+                f"{', compiled stacked,' if stacked else ''} is not a model whose last layer is cut "
+                f"({', '.join(TRIMMED_MODELS)} with eager attention, not compiled stacked)")
+    return None
+
+
+def start_of_labels(keep: torch.Tensor) -> int:
+    """The first position whose next token some row trains on (``keep``: rows x positions, True where the next
+    token is labelled); 0 where none is."""
+    columns = keep.any(dim=0)
+    return int(columns.to(torch.int8).argmax()) if keep.numel() else 0
+
+
+def hidden_from(base: torch.nn.Module, inputs: dict[str, torch.Tensor], start: int) -> torch.Tensor:
+    """``base(**inputs).last_hidden_state[:, start:]`` (``inputs``: ``input_ids`` and optional ``attention_mask``
+    and ``position_ids``), the last layer computed from position ``start`` on alone (`last_layer_from`)."""
+    embeds = base.embed_tokens(inputs["input_ids"])
+    position_ids = inputs.get("position_ids")
+    if position_ids is None:
+        position_ids = torch.arange(embeds.shape[1], device=embeds.device).unsqueeze(0)
+    mask = create_causal_mask(config=base.config, inputs_embeds=embeds, attention_mask=inputs.get("attention_mask"),
+                              cache=None, position_ids=position_ids)
+    rotary = base.rotary_emb(embeds, position_ids=position_ids)
+    *layers, last = base.layers[:base.config.num_hidden_layers]
+    hidden = embeds
+    for layer in layers:
+        hidden = layer(hidden, attention_mask=mask, position_embeddings=rotary, position_ids=position_ids)
+    compile_region = getattr(base.layers, "compile_region", None)
+    run = compile_region(last_layer_from) if compile_region is not None else last_layer_from
+    return base.norm(run(last, hidden, rotary, mask, start))
+
+
+def last_layer_from(layer: torch.nn.Module, hidden: torch.Tensor, rotary: tuple[torch.Tensor, torch.Tensor],
+                    mask: torch.Tensor, start: int) -> torch.Tensor:
+    """A Llama decoder layer's output at positions ``start`` onwards, given its input at every position: its keys
+    and values from all of them, its queries and everything after attention from ``start`` on (transformers'
+    LlamaDecoderLayer and eager attention, the queries cut)."""
+    attention = layer.self_attn
+    rows, width, _ = hidden.shape
+    normed = layer.input_layernorm(hidden)
+
+    def heads(states: torch.Tensor) -> torch.Tensor:
+        return states.view(rows, states.shape[1], -1, attention.head_dim).transpose(1, 2)
+
+    cos, sin = (t.unsqueeze(1) for t in rotary)
+    query = heads(attention.q_proj(normed[:, start:]))
+    key = heads(attention.k_proj(normed))
+    query = query * cos[:, :, start:] + rotate_half(query) * sin[:, :, start:]
+    key = key * cos + rotate_half(key) * sin
+    out, _ = eager_attention_forward(attention, query, key, heads(attention.v_proj(normed)), mask[:, :, start:],
+                                     scaling=attention.scaling,
+                                     dropout=attention.attention_dropout if attention.training else 0.0)
+    hidden = hidden[:, start:] + attention.o_proj(out.reshape(rows, width - start, -1))
+    return hidden + layer.mlp(layer.post_attention_layernorm(hidden))
