@@ -6,7 +6,7 @@ import torch
 from pipeline.lm.chat import IGNORE_INDEX, WORD_LEVEL_FORMAT
 from pipeline.lm.model_settings import ModelSettings
 from pipeline.lm.models import build_scratch_model
-from grid_conversations import TINY, data, trained  # noqa: F401 - data: a fixture
+from grid_conversations import TINY, assert_same_loss_and_gradients, data, trained  # noqa: F401 - data: a fixture
 from pipeline.lm.training.settings import SettingError, TrainSettings
 from pipeline.lm.training import trainer as trainer_module
 from pipeline.lm.training.trainer import finetune, labelled_loss
@@ -31,19 +31,8 @@ def test_labelled_loss_is_the_models_own_loss_with_its_gradients(data, num_items
     model = build_scratch_model(tokenizer, ModelSettings(**TINY), seed=0)
     inputs = inputs_with_unlabelled_positions(len(tokenizer))
 
-    def loss_and_grads(compute):
-        model.zero_grad(set_to_none=True)
-        loss = compute()
-        loss.backward()
-        return loss.detach(), {n: p.grad.clone() for n, p in model.named_parameters()}
-
-    own, own_grads = loss_and_grads(lambda: model(**inputs, num_items_in_batch=num_items).loss)
-    ours, our_grads = loss_and_grads(lambda: labelled_loss(model, inputs, num_items))
-    assert torch.allclose(ours, own, rtol=1e-6)
-    # The same sums in another order: fp32 rounding is relative to a tensor's largest terms, not to each element
-    # (an AVX2-only CPU's kernels put a tied embedding's element of 1.5e-3 1.5e-7 apart, its largest being 0.84).
-    for name, grad in own_grads.items():
-        assert torch.allclose(our_grads[name], grad, rtol=1e-5, atol=1e-6 * grad.abs().max().item()), name
+    assert_same_loss_and_gradients(model, lambda: model(**inputs, num_items_in_batch=num_items).loss,
+                                   lambda: labelled_loss(model, inputs, num_items))
 
 
 def test_a_batch_without_labelled_positions_has_zero_loss_and_gradients(data):

@@ -6,7 +6,7 @@ import torch
 from pipeline.lm.chat import IGNORE_INDEX, WORD_LEVEL_FORMAT
 from pipeline.lm.model_settings import ModelSettings
 from pipeline.lm.models import build_scratch_model, load_model
-from grid_conversations import TINY, data  # noqa: F401 - data: a fixture
+from grid_conversations import TINY, assert_same_loss_and_gradients, data  # noqa: F401 - data: a fixture
 from pipeline.lm.training import last_layer
 from pipeline.lm.training import trainer as trainer_module
 from pipeline.lm.training.batches import stretched_batch_positions
@@ -62,17 +62,8 @@ def test_the_loss_with_the_last_layer_cut_is_the_models_own_with_its_gradients(d
     assert trims(net.base_model)
     inputs = batch(len(data[1]))
 
-    def loss_and_grads(compute):
-        net.zero_grad(set_to_none=True)
-        loss = compute()
-        loss.backward()
-        return loss.detach(), {n: p.grad.clone() for n, p in net.named_parameters()}
-
-    own, own_grads = loss_and_grads(lambda: net(**inputs, num_items_in_batch=num_items).loss)
-    ours, our_grads = loss_and_grads(lambda: labelled_loss(net, inputs, num_items, last_layer=True))
-    assert torch.allclose(ours, own, rtol=1e-6)
-    for name, grad in own_grads.items():
-        assert torch.allclose(our_grads[name], grad, rtol=1e-5, atol=1e-6 * grad.abs().max().item()), name
+    assert_same_loss_and_gradients(net, lambda: net(**inputs, num_items_in_batch=num_items).loss,
+                                   lambda: labelled_loss(net, inputs, num_items, last_layer=True))
 
 
 def test_a_model_with_sdpa_attention_runs_its_whole_last_layer(data, monkeypatch):

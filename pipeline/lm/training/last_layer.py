@@ -5,8 +5,9 @@ default, every position from the answer's first token on, and about a third of a
 prompt) come before it. Every earlier layer feeds the later positions through attention's keys and values, so it
 runs everywhere; the last one needs its keys and values everywhere, but its queries, attention output, MLP and
 norms only from the first position any row of the batch trains on (`start_of_labels`). The same loss and
-gradients in exact arithmetic, rounded otherwise: 0.92x to 0.96x a batch part's forward and backward on one
-thread (README, Speed).
+gradients in exact arithmetic, rounded otherwise: on an AVX2-only CPU (fp32) 0.92x to 0.96x a batch part's
+forward and backward on one thread, 0.94x the default's training step, for one more graph to compile (about 30 s
+more beside the data-build there, which the job's first step now waits for; README, Speed).
 
 For transformers' Llama with eager attention (`trims`): `hidden_from` runs the model's own modules, the layers
 before the last as the model calls them (compiled in place where they are) and the last through
