@@ -6,12 +6,13 @@ prompt) come before it. Every earlier layer feeds the later positions through at
 runs everywhere; the last one needs its keys and values everywhere, but its queries, attention output, MLP and
 norms only from the first position any row of the batch trains on (`start_of_labels`). The same loss and
 gradients in exact arithmetic, rounded otherwise: on an AVX2-only CPU (fp32) 0.92x to 0.96x a batch part's
-forward and backward on one thread, 0.94x the default's training step, for one more graph to compile (about 30 s
-more beside the data-build there, which the job's first step now waits for; README, Speed).
+forward and backward on one thread, 0.94x the default's training step (README, Speed).
 
-For transformers' Llama with eager attention (`trims`): `hidden_from` runs the model's own modules, the layers
-before the last as the model calls them (compiled in place where they are) and the last through
-`last_layer_from`, compiled the way the blocks are (`pipeline.lm.training.compile.compiled_blocks`).
+For transformers' Llama with eager attention (`trims`): `hidden_from` runs the model's own modules, every layer
+through `layer_rows` (the last from the start, the others from 0), compiled the way the blocks are
+(`pipeline.lm.training.compile.compiled_blocks`): one graph for all of them, as the layer's own was. Its inputs
+are copies cut outside the graph: a start traced inside it was specialized at the first layer's 0, and the last
+layer compiled apart, about 30 s more compiling beside the data-build on that CPU (README, Speed).
 """
 
 from __future__ import annotations
@@ -50,7 +51,7 @@ def start_of_labels(keep: torch.Tensor) -> int:
 
 def hidden_from(base: torch.nn.Module, inputs: dict[str, torch.Tensor], start: int) -> torch.Tensor:
     """``base(**inputs).last_hidden_state[:, start:]`` (``inputs``: ``input_ids`` and optional ``attention_mask``
-    and ``position_ids``), the last layer computed from position ``start`` on alone (`last_layer_from`)."""
+    and ``position_ids``), the last layer computed from position ``start`` on alone (`layer_rows`)."""
     embeds = base.embed_tokens(inputs["input_ids"])
     position_ids = inputs.get("position_ids")
     if position_ids is None:
@@ -58,34 +59,44 @@ def hidden_from(base: torch.nn.Module, inputs: dict[str, torch.Tensor], start: i
     mask = create_causal_mask(config=base.config, inputs_embeds=embeds, attention_mask=inputs.get("attention_mask"),
                               cache=None, position_ids=position_ids)
     rotary = base.rotary_emb(embeds, position_ids=position_ids)
-    *layers, last = base.layers[:base.config.num_hidden_layers]
-    hidden = embeds
-    for layer in layers:
-        hidden = layer(hidden, attention_mask=mask, position_embeddings=rotary, position_ids=position_ids)
+    layers = base.layers[:base.config.num_hidden_layers]
     compile_region = getattr(base.layers, "compile_region", None)
-    run = compile_region(last_layer_from) if compile_region is not None else last_layer_from
-    return base.norm(run(last, hidden, rotary, mask, start))
+    run = compile_region(layer_rows) if compile_region is not None else layer_rows
+    cos, sin = rotary
+    hidden = embeds
+    for i, layer in enumerate(layers):
+        # Each input a tensor of its own, contiguous, for every layer alike: one compiled graph serves them all
+        # (a start traced at 0, or a view of another input, would be compiled apart).
+        at = start if i == len(layers) - 1 else 0
+        hidden = run(layer, hidden, _copy(hidden[:, at:]), (cos, sin), (_copy(cos[:, at:]), _copy(sin[:, at:])),
+                     _copy(mask[:, :, at:]))
+    return base.norm(hidden)
 
 
-def last_layer_from(layer: torch.nn.Module, hidden: torch.Tensor, rotary: tuple[torch.Tensor, torch.Tensor],
-                    mask: torch.Tensor, start: int) -> torch.Tensor:
-    """A Llama decoder layer's output at positions ``start`` onwards, given its input at every position: its keys
-    and values from all of them, its queries and everything after attention from ``start`` on (transformers'
-    LlamaDecoderLayer and eager attention, the queries cut)."""
+def _copy(tensor: torch.Tensor) -> torch.Tensor:
+    return tensor.clone(memory_format=torch.contiguous_format)
+
+
+def layer_rows(layer: torch.nn.Module, hidden: torch.Tensor, rows: torch.Tensor,
+               rotary: tuple[torch.Tensor, torch.Tensor], rotary_rows: tuple[torch.Tensor, torch.Tensor],
+               mask_rows: torch.Tensor) -> torch.Tensor:
+    """A Llama decoder layer's output at the last positions, ``rows`` (its input there), given its input at every
+    position, ``hidden``: its keys and values from all of them, its queries and everything after attention at
+    ``rows`` alone (transformers' LlamaDecoderLayer and eager attention, the queries cut). ``rotary_rows`` and
+    ``mask_rows``: the rotary embedding's and the causal mask's rows at those positions."""
     attention = layer.self_attn
-    rows, width, _ = hidden.shape
-    normed = layer.input_layernorm(hidden)
 
     def heads(states: torch.Tensor) -> torch.Tensor:
-        return states.view(rows, states.shape[1], -1, attention.head_dim).transpose(1, 2)
+        return states.view(*states.shape[:2], -1, attention.head_dim).transpose(1, 2)
 
-    cos, sin = (t.unsqueeze(1) for t in rotary)
-    query = heads(attention.q_proj(normed[:, start:]))
-    key = heads(attention.k_proj(normed))
-    query = query * cos[:, :, start:] + rotate_half(query) * sin[:, :, start:]
-    key = key * cos + rotate_half(key) * sin
-    out, _ = eager_attention_forward(attention, query, key, heads(attention.v_proj(normed)), mask[:, :, start:],
+    def rotated(states: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor) -> torch.Tensor:
+        return states * cos.unsqueeze(1) + rotate_half(states) * sin.unsqueeze(1)
+
+    normed = layer.input_layernorm(hidden)
+    query = rotated(heads(attention.q_proj(layer.input_layernorm(rows))), *rotary_rows)
+    key = rotated(heads(attention.k_proj(normed)), *rotary)
+    out, _ = eager_attention_forward(attention, query, key, heads(attention.v_proj(normed)), mask_rows,
                                      scaling=attention.scaling,
                                      dropout=attention.attention_dropout if attention.training else 0.0)
-    hidden = hidden[:, start:] + attention.o_proj(out.reshape(rows, width - start, -1))
+    hidden = rows + attention.o_proj(out.reshape(*rows.shape[:2], -1))
     return hidden + layer.mlp(layer.post_attention_layernorm(hidden))
