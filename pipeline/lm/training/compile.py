@@ -259,7 +259,7 @@ def compiled_blocks(model: torch.nn.Module, torch_compile: str, release_gil: boo
     the compiled graphs run from inductor's C++ wrapper, which releases Python's interpreter lock, so threads
     computing parts of a batch overlap (`pipeline.lm.training.parts`); the kernels are the same. A ModuleList
     whose blocks are compiled apart carries ``compile_region`` meanwhile: a function compiled the way they are,
-    once a function (`pipeline.lm.training.last_layer` runs the last block through one). It waits for
+    once a function (`pipeline.lm.training.last_layer` runs every block through one). It waits for
     `warm_compiler`'s checks, if a job started them.
     """
     if torch_compile not in ("regional", "stacked"):
