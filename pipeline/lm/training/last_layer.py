@@ -63,13 +63,13 @@ def hidden_from(base: torch.nn.Module, inputs: dict[str, torch.Tensor], start: i
     compile_region = getattr(base.layers, "compile_region", None)
     run = compile_region(layer_rows) if compile_region is not None else layer_rows
     cos, sin = rotary
+    # Each input a tensor of its own, contiguous, for every layer alike: one compiled graph serves them all (a start
+    # traced at 0, or a view of another input, would be compiled apart). The rotary and mask rows are cut once.
+    rows_from = {at: ((_copy(cos[:, at:]), _copy(sin[:, at:])), _copy(mask[:, :, at:])) for at in {0, start}}
     hidden = embeds
     for i, layer in enumerate(layers):
-        # Each input a tensor of its own, contiguous, for every layer alike: one compiled graph serves them all
-        # (a start traced at 0, or a view of another input, would be compiled apart).
         at = start if i == len(layers) - 1 else 0
-        hidden = run(layer, hidden, _copy(hidden[:, at:]), (cos, sin), (_copy(cos[:, at:]), _copy(sin[:, at:])),
-                     _copy(mask[:, :, at:]))
+        hidden = run(layer, hidden, _copy(hidden[:, at:]), rotary, *rows_from[at])
     return base.norm(hidden)
 
 
