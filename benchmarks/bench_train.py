@@ -2,6 +2,7 @@
 
     python benchmarks/bench_train.py [--data cpu|paper] [--steps 60] [--skip 10] [--threads 2] [--rounds 1]
                                      [--model conf/model/tiny.yaml] [--train conf/train/cpu.yaml]
+                                     [--switch all-logits|whole-last-layer|muon-bf16 [--every 5]]
 
 Every run trains the same scratch model (shape from ``--model``, the CPU default unless told) on the same
 conversations through `pipeline.lm.training.trainer.finetune`, with the default job's batch size and learning rate:
@@ -49,6 +50,14 @@ drifts within minutes: on a Zen 4 EPYC (on the earlier data, the job's first wor
 Muon's bf16 iterations at 1.19x the default, the next pass of 150 steps at 1.05x; four rounds of 120 steps gave
 1.14x, 1.09x, 1.16x and 1.14x, while the default's own rate fell by a quarter from the first round to the last
 (README, Speed).
+
+``--switch NAME`` runs one run instead: the default, taking the NAME run's value of that one setting every other
+``--every`` steps (a setting the trainer or its optimizer reads at every step: the head everywhere, the whole last
+layer, Muon's iterations in the other precision). Both values meet the same drift, so an effect of a few percent
+shows, where runs in turn did not resolve one: on an AVX2-only Zen 3 draw four rounds put the whole last layer at
+0.89x to 1.09x the cut's rate, and runs switching it every 10 steps at 0.94x and 0.95x (README, Speed). It prints
+each value's median rate over its own steady steps and their ratio over the steady state and over each half of it
+(their spread is the noise's size).
 
 ``--data cpu`` (the default) is what the default job trains on: BWD marking-deadend conversations of 2..4-cell
 worlds (80-230 tokens with the default's cut). ``--data paper``: FWD conversations of 300-1,500 tokens, where
@@ -132,6 +141,97 @@ class StepClock(TrainerCallback):
         return statistics.median(n / t for t, n in self.steps[skip:])
 
 
+# What --switch flips between the steps of one run: a setting the trainer (or its optimizer) reads at every step,
+# as (what holds it, its attribute, the other run's value given the default's).
+SWITCHES = {
+    "all-logits": (lambda trainer: trainer, "labelled_logits", lambda value: not value),
+    "whole-last-layer": (lambda trainer: trainer, "labelled_last_layer", lambda value: not value),
+    "muon-bf16": (lambda trainer: trainer.optimizer, "ns_dtype",
+                  lambda value: torch.float32 if value == torch.bfloat16 else torch.bfloat16),
+}
+
+
+def _unswitchable(name: str, train: TrainSettings, precision: str) -> str | None:
+    """Why the default (``train``, training in ``precision`` here) has no ``name`` run to switch to, or None."""
+    if name == "all-logits" and not train.labelled_logits:
+        return "the train yaml computes the logits everywhere already (labelled_logits: false)"
+    if name == "whole-last-layer" and not (train.labelled_logits and train.labelled_last_layer):
+        return "the train yaml computes the whole last layer already (labelled_last_layer or labelled_logits false)"
+    if name == "muon-bf16" and (train.optimizer != "muon" or precision != "bf16"):
+        return (f"Muon's iterations have a precision to choose only where the default trains with Muon in bf16; "
+                f"here: {train.optimizer}, {precision}")
+    return None
+
+
+class Switcher(StepClock):
+    """A `StepClock` for one run that takes the default's value of a `SWITCHES` setting and the other run's in
+    turns of ``every`` steps (the default's first), and records which one each step ran with."""
+
+    def __init__(self, name: str, every: int):
+        super().__init__()
+        self.holder, self.attribute, self.other_value = SWITCHES[name]
+        self.every = every
+        self.switched: list[bool] = []  # each timed step: whether it ran the other run's value
+        self._values: tuple = ()
+        self._now = False
+
+    def bind(self, trainer) -> None:
+        """`finetune` hands over its trainer before training starts."""
+        self.holder = self.holder(trainer)
+        default = getattr(self.holder, self.attribute)
+        self._values = (default, self.other_value(default))
+
+    def on_step_begin(self, args, state, control, **kwargs):
+        if not self._values:
+            raise RuntimeError("Switcher: no trainer bound (finetune binds it before training starts)")
+        self._now = (state.global_step // self.every) % 2 == 1
+        setattr(self.holder, self.attribute, self._values[self._now])
+        super().on_step_begin(args, state, control, **kwargs)
+
+    def on_step_end(self, args, state, control, **kwargs):
+        super().on_step_end(args, state, control, **kwargs)
+        self.switched.append(self._now)
+
+    def steady_of(self, skip: int, switched: bool, steps: range | None = None) -> tuple[float, float, int]:
+        """Median real tokens per second and median seconds of the steps after the first ``skip`` (of ``steps``,
+        if given) that ran with the other value (``switched``) or the default's, and how many there were."""
+        picked = [self.steps[i] for i in (steps or range(skip, len(self.steps))) if self.switched[i] == switched]
+        return statistics.median(n / t for t, n in picked), statistics.median(t for t, _ in picked), len(picked)
+
+
+def switching(args, train, other: str, default: str, per_token: dict, per_conversation: dict,
+              measured: list) -> None:
+    """``--switch``: one run of the default that takes the ``other`` run's setting every other ``--every`` steps.
+    Both settings meet the same drift, so a difference of a few percent shows (runs in turn did not resolve one on
+    these machines: README, Speed). Prints each setting's steady rate, their ratio over the whole steady state
+    and over each half of it (their spread is the noise's size), and the shares of the matmul peaks."""
+    clock = Switcher(args.switch, args.every)
+    result = train(default, clock)
+    per_token[other], per_conversation[other] = per_token[default], per_conversation[default]
+    print(f"{default}, switched to '{other.removeprefix(default + ', ')}' every {args.every} steps: "
+          f"{result.tokens_per_second:.0f} real tokens/s over all steps; {result.train_seconds:.1f} s for "
+          f"{result.global_step} steps; final loss {result.final_loss:.3f}")
+    rates = {}
+    for name, switched in ((default, False), (other, True)):
+        rate, seconds, count = clock.steady_of(args.skip, switched)
+        rates[name] = rate
+        print(f"{name}: {rate:.0f} real tokens/s in steady state ({rate * per_token[name] / 1e9:.1f} GFLOP/s "
+              f"useful; {rate / per_conversation[name]:.1f} conversations/s), {1000 * seconds:.1f} ms a step "
+              f"(medians of its {count} steps after step {args.skip})")
+    middle = (args.skip + len(clock.steps)) // 2
+    halves = [clock.steady_of(args.skip, True, half)[0] / clock.steady_of(args.skip, False, half)[0]
+              for half in (range(args.skip, middle), range(middle, len(clock.steps)))]
+    print(f"{other} / {default} tokens/s in steady state, switched within one run: "
+          f"{rates[other] / rates[default]:.3f}x (halves of the steady state: {halves[0]:.3f}x, {halves[1]:.3f}x)")
+    measured.append(peaks(args.threads))
+    peak = {k: max(m[k] for m in measured) for k in measured[0]}
+    print("matmul peak after: " + ", ".join(f"{k} {v:.1f} GFLOP/s" for k, v in measured[1].items())
+          + "; using the best: " + ", ".join(f"{k} {v:.1f}" for k, v in peak.items()))
+    for name, rate in rates.items():
+        print(f"{name}: steady state " + ", ".join(f"{100 * rate * per_token[name] / 1e9 / value:.0f}% of the "
+                                                   f"{kind} peak" for kind, value in peak.items()))
+
+
 def preset(settings_class, path):
     """A preset yaml as the job reads it: what it lists, merged onto its settings class's defaults."""
     return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(settings_class), OmegaConf.load(path)))
@@ -185,11 +285,21 @@ def main() -> None:
                                            "other-attention", "plain-positions", "other-newlines", "whole-batches",
                                            "all-logits", "whole-last-layer"),
                         action="append", help="run only these (repeatable)")
+    parser.add_argument("--switch", choices=tuple(SWITCHES), default=None,
+                        help="one run of the default that flips to this run's setting every --every steps")
+    parser.add_argument("--every", type=int, default=5, help="steps between two flips of --switch")
     args = parser.parse_args()
     if not 0 <= args.skip < args.steps:
         parser.error(f"--skip {args.skip} must be at least 0 and below --steps {args.steps}")
     if args.rounds < 1:
         parser.error(f"--rounds {args.rounds} must be at least 1")
+    if args.switch:
+        if args.only or args.rounds != 1:
+            parser.error(f"--switch {args.switch} is one run of its own: not with --only or --rounds")
+        if args.every < 1 or args.skip < 2 * args.every or args.steps < args.skip + 4 * args.every:
+            parser.error(f"--switch needs --every >= 1, --skip >= 2 x --every (each setting compiled before the "
+                         f"steady state) and --steps >= --skip + 4 x --every (each in each half of it); got --every "
+                         f"{args.every}, --skip {args.skip}, --steps {args.steps}")
     transformers.logging.set_verbosity_error()
 
     model_cfg, train_cfg = preset(ModelSettings, args.model), preset(TrainSettings, args.train)
@@ -214,6 +324,8 @@ def main() -> None:
     precision = "bf16" if use_bf16(train_cfg.bf16, train_cfg.bf16_when_faster) else "fp32"
     faster = "bf16" if use_bf16(train_cfg.bf16, True) else "fp32"
     scope = train_cfg.torch_compile.value
+    if args.switch and (missing := _unswitchable(args.switch, train_cfg, precision)):
+        parser.error(f"--switch {args.switch}: {missing}")
     print(device_line(args.threads))
     print(f"data ({args.data}, prompt {prompt}, newlines {model_cfg.newlines}): {len(conversations)} conversations, "
           f"tokens min {min(lengths)} "
@@ -306,7 +418,9 @@ def main() -> None:
     # Round k runs the selection in turn, round k+1 reversed (A B, B A, ...): a machine whose speed drifts steadily
     # during the benchmark favours no run. Only the very first run compiles cold; --skip leaves that out.
     schedule = [(k, name) for k in range(args.rounds) for name in (chosen if k % 2 == 0 else chosen[::-1])]
-    for k, name in schedule:
+
+    def train(name: str, clock: StepClock):
+        """One run: ``name``'s settings trained through `finetune`, timed by ``clock``."""
         packing, bf16, bf16_when_faster, compile_scope, run_prompt, optimizer, muon_bf16 = runs[name]
         texts = sets[run_prompt]
         newlines = run_newlines.get(name, model_cfg.newlines)
@@ -316,7 +430,7 @@ def main() -> None:
                             newlines=newlines)
         run_probe = probe if newlines == model_cfg.newlines else make_model(run_model, run_tokenizer, seed=args.seed)
         per_token[name] = training_flops(run_probe, run_lengths) / sum(run_lengths)
-        mean_tokens = per_conversation[name] = statistics.fmean(run_lengths)
+        per_conversation[name] = statistics.fmean(run_lengths)
         settings = TrainSettings(
             max_steps=args.steps, per_device_batch_size=train_cfg.per_device_batch_size,
             learning_rate=train_cfg.learning_rate, packing=packing, bf16=bf16, bf16_when_faster=bf16_when_faster,
@@ -328,12 +442,18 @@ def main() -> None:
             labelled_logits=switch(name, labelled, train_cfg.labelled_logits, False),
             labelled_last_layer=switch(name, last, train_cfg.labelled_last_layer, False),
         )
-        clock = StepClock()
         with tempfile.TemporaryDirectory() as out:
             model = make_model(run_model, run_tokenizer, seed=args.seed)
-            result = finetune(model, run_tokenizer, WORD_LEVEL_FORMAT, texts, settings, out, seed=args.seed,
-                              max_length=max(run_lengths), callbacks=[clock])
-        steady = clock.steady(args.skip)
+            return finetune(model, run_tokenizer, WORD_LEVEL_FORMAT, texts, settings, out, seed=args.seed,
+                            max_length=max(run_lengths), callbacks=[clock])
+
+    if args.switch:
+        switching(args, train, selected[args.switch], default, per_token, per_conversation, measured)
+        return
+    for k, name in schedule:
+        clock = StepClock()
+        result = train(name, clock)
+        steady, mean_tokens = clock.steady(args.skip), per_conversation[name]
         rounds.setdefault(name, []).append((result.tokens_per_second, steady))
         # Steady time for all the steps, against the time they took: what compiling (or warming up) cost.
         tokens = sum(n for _, n in clock.steps)

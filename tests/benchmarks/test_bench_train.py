@@ -45,3 +45,67 @@ def test_bench_train_refuses_no_rounds(tmp_path):
     assert result.returncode == 2
     assert "--rounds 0 must be at least 1" in result.stderr
     assert "matmul peak" not in result.stdout
+
+
+def test_switcher_flips_the_trainers_setting_in_turns_of_every_steps():
+    """`Switcher` takes the default's value for ``every`` steps, then the other run's, and so on, on the object
+    bound to it, and records which value each step ran with; unbound, it stops at the first step."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from transformers import TrainerControl, TrainerState, TrainingArguments
+
+    from bench_train import Switcher
+
+    class Trainer:  # what finetune binds: the setting lives on the trainer
+        labelled_last_layer = True
+
+    switcher, trainer, state = Switcher("whole-last-layer", 2), Trainer(), TrainerState()
+    args, control = TrainingArguments(output_dir="unused", report_to=[]), TrainerControl()
+    with pytest.raises(RuntimeError, match="no trainer bound"):
+        switcher.on_step_begin(args, state, control)
+    switcher.bind(trainer)
+    seen = []
+    for step in range(7):
+        state.global_step = step
+        switcher.on_step_begin(args, state, control)
+        seen.append(trainer.labelled_last_layer)
+        state.num_input_tokens_seen += 10
+        switcher.on_step_end(args, state, control)
+    assert seen == [True, True, False, False, True, True, False]
+    assert switcher.switched == [not value for value in seen]
+    assert [n for _, n in switcher.steps] == [10] * 7
+    assert switcher.steady_of(0, True)[2] == 3 and switcher.steady_of(2, False, range(2, 6))[2] == 2
+
+
+@pytest.mark.slow
+def test_bench_train_switches_the_last_layer_within_one_run(tmp_path):
+    """``--switch whole-last-layer``: one run of the default (through finetune, which binds the trainer) that
+    computes the whole last layer every other 2 steps; each setting's steady steps counted apart, their ratio
+    over the steady state and each half of it, and the shares of the peak."""
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "bench_train.py"), "--switch", "whole-last-layer",
+         "--conversations", "16", "--steps", "12", "--skip", "4", "--every", "2", "--threads", "1"],
+        capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-3000:]
+    lines = result.stdout.splitlines()
+    assert sum("real tokens/s over all steps" in line for line in lines) == 1
+    steady = [line for line in lines if "(medians of its 4 steps after step 4)" in line]
+    assert len(steady) == 2 and ", whole last layer:" in steady[1], steady
+    ratio = [line for line in lines if "switched within one run:" in line]
+    assert len(ratio) == 1 and re.search(r"[\d.]+x \(halves of the steady state: [\d.]+x, [\d.]+x\)", ratio[0])
+    assert sum("steady state" in line and "% of the fp32 peak" in line for line in lines) == 2
+
+
+@pytest.mark.parametrize("flags, message", [
+    (["--switch", "all-logits", "--only", "default"], "--switch all-logits is one run of its own"),
+    (["--switch", "all-logits", "--every", "5", "--skip", "9"], "got --every 5, --skip 9, --steps 60"),
+    (["--switch", "all-logits", "--train", str(ROOT / "conf" / "train" / "toy.yaml")],
+     "--switch all-logits: the train yaml computes the logits everywhere already"),
+])
+def test_bench_train_refuses_a_switch_it_cannot_measure(tmp_path, flags, message):
+    """A switch with other runs, too few steps for each setting in each half of the steady state, or one the
+    train yaml has no other value for, stops before any measurement, naming what is wrong."""
+    result = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "bench_train.py"), *flags],
+                            capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert result.returncode == 2
+    assert message in result.stderr
+    assert "matmul peak" not in result.stdout

@@ -457,7 +457,8 @@ def finetune(
     ``seed`` seeds the Trainer and the held-out split; a conversation longer than ``max_length`` tokens is
     dropped or truncated (``settings.long_conversations``) and counted. With ``"mlflow"`` in ``settings.report_to``, transformers' MLflowCallback logs the
     Trainer's arguments as params and ``loss``, ``learning_rate``, ``grad_norm`` ... by step into the active
-    run (or the run ``MLFLOW_RUN_ID`` names).
+    run (or the run ``MLFLOW_RUN_ID`` names). A callback with a ``bind`` method gets the trainer before training
+    starts (`benchmarks/bench_train.py`'s ``--switch`` flips its settings between steps).
     """
     threads = torch.get_num_threads()
     if settings.torch_threads is not None:
@@ -518,6 +519,9 @@ def _finetune(model, tokenizer, fmt, conversations, settings, output_dir, seed, 
     if any(isinstance(c, ProgressCallback) for c in trainer.callback_handler.callbacks):
         trainer.remove_callback(ProgressCallback)
         trainer.add_callback(BarProgress)
+    for callback in callbacks:  # a callback that steers the trainer itself between steps (bench_train's --switch)
+        if callable(getattr(callback, "bind", None)):
+            callback.bind(trainer)
     resume = get_last_checkpoint(str(checkpoints))
     if resume:
         log.info("resuming from %s", resume)
