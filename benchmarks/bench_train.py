@@ -303,6 +303,12 @@ def main() -> None:
     transformers.logging.set_verbosity_error()
 
     model_cfg, train_cfg = preset(ModelSettings, args.model), preset(TrainSettings, args.train)
+    # What the trainer will choose on this machine (on the runs' threads), as --train asks and with bf16_when_faster.
+    torch.set_num_threads(args.threads)
+    precision = "bf16" if use_bf16(train_cfg.bf16, train_cfg.bf16_when_faster) else "fp32"
+    faster = "bf16" if use_bf16(train_cfg.bf16, True) else "fp32"
+    if args.switch and (missing := _unswitchable(args.switch, train_cfg, precision)):
+        parser.error(f"--switch {args.switch}: {missing}")
     make = cpu_conversations if args.data == "cpu" else paper_conversations
     prompt = model_cfg.prompt
     sets = {prompt: make(args.conversations, args.seed, prompt, model_cfg.plan_form)}
@@ -319,13 +325,7 @@ def main() -> None:
     lengths = [len(encode_conversation(tokenizer, WORD_LEVEL_FORMAT, c)[0]) for c in conversations]
     probe = make_model(model_cfg, tokenizer, seed=args.seed)
     flops_per_real_token = training_flops(probe, lengths) / sum(lengths)
-    # What the trainer will choose on this machine (on the runs' threads), as --train asks and with bf16_when_faster.
-    torch.set_num_threads(args.threads)
-    precision = "bf16" if use_bf16(train_cfg.bf16, train_cfg.bf16_when_faster) else "fp32"
-    faster = "bf16" if use_bf16(train_cfg.bf16, True) else "fp32"
     scope = train_cfg.torch_compile.value
-    if args.switch and (missing := _unswitchable(args.switch, train_cfg, precision)):
-        parser.error(f"--switch {args.switch}: {missing}")
     print(device_line(args.threads))
     print(f"data ({args.data}, prompt {prompt}, newlines {model_cfg.newlines}): {len(conversations)} conversations, "
           f"tokens min {min(lengths)} "

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from omegaconf import OmegaConf
 
 from pipeline.lm.training.compile import cpu_has_bf16
 
@@ -38,20 +39,11 @@ def test_bench_train_runs_the_default_against_the_other_newline_cut(tmp_path):
     assert ("% of the bf16 peak" in result.stdout) == bf16_peak
 
 
-def test_bench_train_refuses_no_rounds(tmp_path):
-    """``--rounds 0`` stops before any measurement, naming the value and what is allowed."""
-    result = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "bench_train.py"), "--rounds", "0"],
-                            capture_output=True, text=True, timeout=120, cwd=tmp_path)
-    assert result.returncode == 2
-    assert "--rounds 0 must be at least 1" in result.stderr
-    assert "matmul peak" not in result.stdout
-
-
 def test_switcher_flips_the_trainers_setting_in_turns_of_every_steps():
     """`Switcher` takes the default's value for ``every`` steps, then the other run's, and so on, on the object
     bound to it, and records which value each step ran with; unbound, it stops at the first step."""
     sys.path.insert(0, str(ROOT / "benchmarks"))
-    from transformers import TrainerControl, TrainerState, TrainingArguments
+    from transformers import TrainerControl, TrainerState
 
     from bench_train import Switcher
 
@@ -59,7 +51,7 @@ def test_switcher_flips_the_trainers_setting_in_turns_of_every_steps():
         labelled_last_layer = True
 
     switcher, trainer, state = Switcher("whole-last-layer", 2), Trainer(), TrainerState()
-    args, control = TrainingArguments(output_dir="unused", report_to=[]), TrainerControl()
+    args, control = None, TrainerControl()  # the arguments are not read
     with pytest.raises(RuntimeError, match="no trainer bound"):
         switcher.on_step_begin(args, state, control)
     switcher.bind(trainer)
@@ -76,17 +68,27 @@ def test_switcher_flips_the_trainers_setting_in_turns_of_every_steps():
     assert switcher.steady_of(0, True)[2] == 3 and switcher.steady_of(2, False, range(2, 6))[2] == 2
 
 
+def _bench_main(monkeypatch, flags):
+    """`bench_train.main` run in this process with ``flags``: no interpreter and imports to start."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import bench_train
+
+    monkeypatch.setattr(sys, "argv", ["bench_train.py", *flags])
+    bench_train.main()
+
+
 @pytest.mark.slow
-def test_bench_train_switches_the_last_layer_within_one_run(tmp_path):
-    """``--switch whole-last-layer``: one run of the default (through finetune, which binds the trainer) that
-    computes the whole last layer every other 2 steps; each setting's steady steps counted apart, their ratio
-    over the steady state and each half of it, and the shares of the peak."""
-    result = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "bench_train.py"), "--switch", "whole-last-layer",
-         "--conversations", "16", "--steps", "12", "--skip", "4", "--every", "2", "--threads", "1"],
-        capture_output=True, text=True, timeout=300, cwd=tmp_path)
-    assert result.returncode == 0, result.stderr[-3000:]
-    lines = result.stdout.splitlines()
+def test_bench_train_switches_the_last_layer_within_one_run(tmp_path, monkeypatch, capsys):
+    """``--switch whole-last-layer``: one run of the default (through finetune, which binds the trainer: unbound,
+    the switcher stops) that computes the whole last layer every other 2 steps; each setting's steady steps
+    counted apart, their ratio over the steady state and each half of it, and the shares of the peak. The CPU
+    default's train yaml without compiling, so the run takes seconds."""
+    train = tmp_path / "train.yaml"
+    OmegaConf.save(OmegaConf.merge(OmegaConf.load(ROOT / "conf" / "train" / "cpu.yaml"), {"torch_compile": "none"}),
+                   train)
+    _bench_main(monkeypatch, ["--switch", "whole-last-layer", "--conversations", "16", "--steps", "12", "--skip", "4",
+                              "--every", "2", "--threads", "1", "--train", str(train)])
+    lines = capsys.readouterr().out.splitlines()
     assert sum("real tokens/s over all steps" in line for line in lines) == 1
     steady = [line for line in lines if "(medians of its 4 steps after step 4)" in line]
     assert len(steady) == 2 and ", whole last layer:" in steady[1], steady
@@ -96,16 +98,17 @@ def test_bench_train_switches_the_last_layer_within_one_run(tmp_path):
 
 
 @pytest.mark.parametrize("flags, message", [
+    (["--rounds", "0"], "--rounds 0 must be at least 1"),
     (["--switch", "all-logits", "--only", "default"], "--switch all-logits is one run of its own"),
     (["--switch", "all-logits", "--every", "5", "--skip", "9"], "got --every 5, --skip 9, --steps 60"),
     (["--switch", "all-logits", "--train", str(ROOT / "conf" / "train" / "toy.yaml")],
      "--switch all-logits: the train yaml computes the logits everywhere already"),
 ])
-def test_bench_train_refuses_a_switch_it_cannot_measure(tmp_path, flags, message):
-    """A switch with other runs, too few steps for each setting in each half of the steady state, or one the
-    train yaml has no other value for, stops before any measurement, naming what is wrong."""
-    result = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "bench_train.py"), *flags],
-                            capture_output=True, text=True, timeout=120, cwd=tmp_path)
-    assert result.returncode == 2
-    assert message in result.stderr
-    assert "matmul peak" not in result.stdout
+def test_bench_train_refuses_what_it_cannot_measure(monkeypatch, capsys, flags, message):
+    """No rounds, a switch with other runs, too few steps for each setting in each half of the steady state, or a
+    switch the train yaml has no other value for: each stops before any measurement, naming what is wrong."""
+    with pytest.raises(SystemExit) as stopped:
+        _bench_main(monkeypatch, flags)
+    assert stopped.value.code == 2
+    out, err = capsys.readouterr()
+    assert message in err and "matmul peak" not in out

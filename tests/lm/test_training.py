@@ -345,7 +345,7 @@ def test_bf16_on_a_cpu_without_bf16_hardware_falls_back_to_fp32(tmp_path, monkey
 
 @pytest.mark.parametrize("fp32, bf16, chosen", [(308.0, 165.0, False), (142.0, 396.0, True), (300.0, 250.0, True)])
 def test_bf16_when_faster_follows_the_measured_matmul_peaks(tmp_path, monkeypatch, caplog, fp32, bf16, chosen):
-    # The first two: the two machines of the README's Speed section (Intel Xeon without AMX; AMD EPYC).
+    # The first two: the two machines of docs/speed.md (Intel Xeon without AMX; AMD EPYC).
     monkeypatch.setattr("pipeline.lm.training.trainer.torch.cuda.is_available", lambda: False)
     monkeypatch.setattr("pipeline.lm.training.compile.cpu_has_bf16", lambda: True)
     monkeypatch.setattr("pipeline.lm.training.compile._PEAKS", {})  # measured once a process: these measure anew
