@@ -49,13 +49,13 @@ median over rounds with the steady ratio of every round beside it. One pass can 
 drifts within minutes: on a Zen 4 EPYC (on the earlier data, the job's first worlds), one pass of 80 steps put
 Muon's bf16 iterations at 1.19x the default, the next pass of 150 steps at 1.05x; four rounds of 120 steps gave
 1.14x, 1.09x, 1.16x and 1.14x, while the default's own rate fell by a quarter from the first round to the last
-(README, Speed).
+(docs/speed.md).
 
 ``--switch NAME`` runs one run instead: the default, taking the NAME run's value of that one setting every other
 ``--every`` steps (a setting the trainer or its optimizer reads at every step: the head everywhere, the whole last
 layer, Muon's iterations in the other precision). Both values meet the same drift, so an effect of a few percent
 shows, where runs in turn did not resolve one: on an AVX2-only Zen 3 draw four rounds put the whole last layer at
-0.89x to 1.09x the cut's rate, and runs switching it every 10 steps at 0.94x and 0.95x (README, Speed). It prints
+0.89x to 1.09x the cut's rate, and runs switching it every 10 steps at 0.94x and 0.95x (docs/speed.md). It prints
 each value's median rate over its own steady steps and their ratio over the steady state and over each half of it
 (their spread is the noise's size).
 
@@ -169,17 +169,18 @@ class Switcher(StepClock):
 
     def __init__(self, name: str, every: int):
         super().__init__()
-        self.holder, self.attribute, self.other_value = SWITCHES[name]
+        self._holder_of, self.attribute, self._other_value = SWITCHES[name]
         self.every = every
+        self.holder = None  # what holds the setting: the bound trainer, or its optimizer
         self.switched: list[bool] = []  # each timed step: whether it ran the other run's value
         self._values: tuple = ()
         self._now = False
 
     def bind(self, trainer) -> None:
         """`finetune` hands over its trainer before training starts."""
-        self.holder = self.holder(trainer)
+        self.holder = self._holder_of(trainer)
         default = getattr(self.holder, self.attribute)
-        self._values = (default, self.other_value(default))
+        self._values = (default, self._other_value(default))
 
     def on_step_begin(self, args, state, control, **kwargs):
         if not self._values:
@@ -203,7 +204,7 @@ def switching(args, train, other: str, default: str, per_token: dict, per_conver
               measured: list) -> None:
     """``--switch``: one run of the default that takes the ``other`` run's setting every other ``--every`` steps.
     Both settings meet the same drift, so a difference of a few percent shows (runs in turn did not resolve one on
-    these machines: README, Speed). Prints each setting's steady rate, their ratio over the whole steady state
+    these machines: docs/speed.md). Prints each setting's steady rate, their ratio over the whole steady state
     and over each half of it (their spread is the noise's size), and the shares of the matmul peaks."""
     clock = Switcher(args.switch, args.every)
     result = train(default, clock)
