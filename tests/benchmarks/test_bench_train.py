@@ -74,7 +74,11 @@ def _bench_main(monkeypatch, flags):
     import bench_train
 
     monkeypatch.setattr(sys, "argv", ["bench_train.py", *flags])
-    bench_train.main()
+    threads = torch.get_num_threads()
+    try:
+        bench_train.main()
+    finally:  # it sets this process's threads to its --threads
+        torch.set_num_threads(threads)
 
 
 @pytest.mark.slow
