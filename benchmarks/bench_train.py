@@ -121,6 +121,22 @@ def device_line(threads: int) -> str:
     return f"cpu: {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}; torch {torch.__version__}, {threads} threads"
 
 
+def best_peaks(measured: list[dict[str, float]], threads: int) -> dict[str, float]:
+    """The peaks measured once more after the runs (appended to ``measured``, printed) and the best of each kind:
+    this machine's speed moves during a benchmark."""
+    measured.append(peaks(threads))
+    best = {k: max(m[k] for m in measured) for k in measured[0]}
+    print("matmul peak after: " + ", ".join(f"{k} {v:.1f} GFLOP/s" for k, v in measured[-1].items())
+          + "; using the best: " + ", ".join(f"{k} {v:.1f}" for k, v in best.items()))
+    return best
+
+
+def shares(rate: float, flops_per_token: float, peak: dict[str, float]) -> str:
+    """``rate`` real tokens/s of ``flops_per_token`` useful FLOPs as a share of each peak."""
+    return ", ".join(f"{100 * rate * flops_per_token / 1e9 / value:.0f}% of the {kind} peak"
+                     for kind, value in peak.items())
+
+
 class StepClock(TrainerCallback):
     """Wall time and real tokens of every optimizer step."""
 
@@ -224,13 +240,9 @@ def switching(args, train, other: str, default: str, per_token: dict, per_conver
               for half in (range(args.skip, middle), range(middle, len(clock.steps)))]
     print(f"{other} / {default} tokens/s in steady state, switched within one run: "
           f"{rates[other] / rates[default]:.3f}x (halves of the steady state: {halves[0]:.3f}x, {halves[1]:.3f}x)")
-    measured.append(peaks(args.threads))
-    peak = {k: max(m[k] for m in measured) for k in measured[0]}
-    print("matmul peak after: " + ", ".join(f"{k} {v:.1f} GFLOP/s" for k, v in measured[1].items())
-          + "; using the best: " + ", ".join(f"{k} {v:.1f}" for k, v in peak.items()))
+    peak = best_peaks(measured, args.threads)
     for name, rate in rates.items():
-        print(f"{name}: steady state " + ", ".join(f"{100 * rate * per_token[name] / 1e9 / value:.0f}% of the "
-                                                   f"{kind} peak" for kind, value in peak.items()))
+        print(f"{name}: steady state {shares(rate, per_token[name], peak)}")
 
 
 def preset(settings_class, path):
@@ -465,10 +477,7 @@ def main() -> None:
               f"conversations/s of {mean_tokens:.0f} tokens); real-token fraction "
               f"{result.real_token_fraction:.3f}; {result.train_seconds:.1f} s for {result.global_step} steps, "
               f"{warmup:.1f} s of them over the steady rate; final loss {result.final_loss:.3f}")
-    measured.append(peaks(args.threads))
-    peak = {k: max(m[k] for m in measured) for k in measured[0]}
-    print("matmul peak after: " + ", ".join(f"{k} {v:.1f} GFLOP/s" for k, v in measured[1].items())
-          + "; using the best: " + ", ".join(f"{k} {v:.1f}" for k, v in peak.items()))
+    peak = best_peaks(measured, args.threads)
     # Over rounds: the median of each run's rates (one round: its rates).
     rates = {name: tuple(statistics.median(r[i] for r in measured_rounds) for i in (0, 1))
              for name, measured_rounds in rounds.items()}
@@ -487,9 +496,8 @@ def main() -> None:
                       f"{steady / base_steady:.2f}x in steady state{each}; conversations/s: "
                       f"{conversations * overall / base_all:.2f}x and {conversations * steady / base_steady:.2f}x")
     for name, (overall, steady) in rates.items():
-        shares = [", ".join(f"{100 * rate * per_token[name] / 1e9 / value:.0f}% of the {kind} peak"
-                            for kind, value in peak.items()) for rate in (steady, overall)]
-        print(f"{name}: steady state {shares[0]}; over all steps {shares[1]}")
+        print(f"{name}: steady state {shares(steady, per_token[name], peak)}; over all steps "
+              f"{shares(overall, per_token[name], peak)}")
 
 
 if __name__ == "__main__":

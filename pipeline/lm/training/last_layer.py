@@ -12,7 +12,7 @@ For transformers' Llama with eager attention (`trims`): `hidden_from` runs the m
 through `layer_rows` (the last from the start, the others from 0), compiled the way the blocks are
 (`pipeline.lm.training.compile.compiled_blocks`): one graph for all of them, as the layer's own was. Its inputs
 are copies cut outside the graph: a start traced inside it was specialized at the first layer's 0, and the last
-layer compiled apart, about 30 s more compiling beside the data-build on that CPU (README, Speed).
+layer compiled apart, about 30 s more compiling beside the data-build on that CPU (docs/speed.md).
 """
 
 from __future__ import annotations
