@@ -233,7 +233,7 @@ def edge_label_spans(world: World, answer: str, largest: tuple[int, int]) -> lis
 
     A grid of side at most L holds no cell L or more from its low (or high) corner, so such a neighbour's `cut`
     is explained as well by "beyond the grid's bound" as by "L cells from the opposite corner", and the train
-    worlds never tell the two rules apart; a larger world does (README, "Extrapolation").
+    worlds never tell the two rules apart; a larger world does (docs/extrapolation.md).
     `DataSettings.mask_edge_labels` (not in the paper) leaves these labels out of the loss. Only neighbour
     lines name cells outside the grid, so every such cell line's next line is its label."""
     lines = answer.split("\n")

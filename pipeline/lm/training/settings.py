@@ -91,7 +91,7 @@ class TrainSettings:
     # bf16; fp32 otherwise. Off with any other optimizer or without bf16. It changes the numbers (README, Speed).
     muon_bf16: bool = field(default=False, metadata={"hash_if_set": True})
     # Training conversations see randomized, stretched position ids (`batches.stretched_positions`; 1: plain
-    # positions); decoding keeps plain ones. Not in the paper (README, "Extrapolation").
+    # positions); decoding keeps plain ones. Not in the paper (docs/extrapolation.md).
     position_stretch: float = field(default=1.0, metadata={"hash_if_set": True})
     # Each micro-batch cut into this many parts of consecutive rows, computed side by side by as many Python
     # threads where the job has that many torch threads (else whole); the same training, rounded otherwise than
