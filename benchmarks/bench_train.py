@@ -332,7 +332,8 @@ def main() -> None:
     other_newlines = args.other_newlines or ("joined" if model_cfg.newlines == "own" else "own")
     if other_newlines == model_cfg.newlines:
         parser.error(f"--other-newlines {other_newlines} is the model's own (newlines: {model_cfg.newlines})")
-    tokenizers = {newlines: build_word_tokenizer(texts_seen, numbers=model_cfg.numbers, newlines=newlines)
+    tokenizers = {newlines: build_word_tokenizer(texts_seen, numbers=model_cfg.numbers, newlines=newlines,
+                                                 spaces=model_cfg.spaces)
                   for newlines in (model_cfg.newlines, other_newlines)}
     tokenizer = tokenizers[model_cfg.newlines]
     lengths = [len(encode_conversation(tokenizer, WORD_LEVEL_FORMAT, c)[0]) for c in conversations]

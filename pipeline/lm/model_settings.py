@@ -39,6 +39,11 @@ NUMBERS = ("whole", "digits")
 # cuts as `joined` and ties each joined word's embedding to its word's plus a newline's
 # (pipeline.lm.models.ComposedRows), so "(1, 2)\n" and "(1, 2)" share what is learnt of the cell.
 NEWLINES = ("own", "joined", "composed")
+# Where the word-level tokenizer puts a space before a cell (with `digits`, also before a digit: pipeline.lm.tokenizer.
+# SPACE_PIECES): its own piece, or joined to the word or punctuation mark before it ("Step ", " at ", ": "): the
+# same text in about 0.91x the tokens. Those few words are always followed by that space, so a joined word replaces
+# its word instead of adding a second form of it (as a joined newline does).
+SPACES = ("own", "joined")
 
 
 class ModelKind(str, Enum):
@@ -78,6 +83,7 @@ class ModelSettings:
     # NUMBERS (scratch models): `digits` makes a step number larger than training shows of trained pieces.
     numbers: str = field(default="whole", metadata={"hash_if_set": True})
     newlines: str = field(default="own", metadata={"hash_if_set": True})   # NEWLINES; scratch models only
+    spaces: str = field(default="own", metadata={"hash_if_set": True})   # SPACES; scratch models only
     positions: str = field(default="rope", metadata={"hash_if_set": True})   # POSITIONS; scratch models only
     attention_scale: str = field(default="constant", metadata={"hash_if_set": True})  # ATTENTION_SCALES; scratch
     coordinate_init: str = field(default="random", metadata={"hash_if_set": True})  # COORDINATE_INITS; scratch
@@ -101,6 +107,7 @@ class ModelSettings:
         require(self.plan_form in PLAN_FORMS, "plan_form", self.plan_form, f"one of {', '.join(PLAN_FORMS)}")
         require(self.numbers in NUMBERS, "numbers", self.numbers, f"one of {', '.join(NUMBERS)}")
         require(self.newlines in NEWLINES, "newlines", self.newlines, f"one of {', '.join(NEWLINES)}")
+        require(self.spaces in SPACES, "spaces", self.spaces, f"one of {', '.join(SPACES)}")
         require(self.positions in POSITIONS, "positions", self.positions, f"one of {', '.join(POSITIONS)}")
         require(self.attention_scale in ATTENTION_SCALES, "attention_scale", self.attention_scale,
                 f"one of {', '.join(ATTENTION_SCALES)}")
@@ -117,6 +124,8 @@ class ModelSettings:
         require(self.numbers == "whole" or self.kind is ModelKind.scratch, "numbers", self.numbers,
                 "whole for a pretrained model (kind=hf keeps its own tokenizer)")
         require(self.newlines == "own" or self.kind is ModelKind.scratch, "newlines", self.newlines,
+                "own for a pretrained model (kind=hf keeps its own tokenizer)")
+        require(self.spaces == "own" or self.kind is ModelKind.scratch, "spaces", self.spaces,
                 "own for a pretrained model (kind=hf keeps its own tokenizer)")
         require(self.positions == "rope" or self.kind is ModelKind.scratch, "positions", self.positions,
                 "rope for a pretrained model (kind=hf keeps its own position encoding)")

@@ -67,7 +67,8 @@ def make_tokenizer(settings: ModelSettings, texts: Iterable[str], frame: int) ->
     """The model's tokenizer: a word-level one over ``texts`` and the cells of ``frame`` (scratch), or the
     pretrained model's own, given a pad token if it has none (`with_pad_token`)."""
     if settings.kind is ModelKind.scratch:
-        return build_word_tokenizer(texts, frame=frame, numbers=settings.numbers, newlines=settings.newlines)
+        return build_word_tokenizer(texts, frame=frame, numbers=settings.numbers, newlines=settings.newlines,
+                                    spaces=settings.spaces)
     return with_pad_token(load_tokenizer(settings.path, trust_remote_code=settings.trust_remote_code))
 
 

@@ -22,7 +22,7 @@ from tokenizers import Regex, Tokenizer, decoders, models, pre_tokenizers
 from transformers import PreTrainedTokenizerFast
 
 from pipeline.lm.chat import WORD_LEVEL_FORMAT, plain_backend
-from pipeline.lm.model_settings import NEWLINES, NUMBERS
+from pipeline.lm.model_settings import NEWLINES, NUMBERS, SPACES
 
 # How a number outside a cell is cut (`ModelSettings.numbers`): one piece a number, with its leading space
 # (`whole`: "Step 12" is "Step", " 12"), or one piece a digit, the space its own piece (`digits`: "Step", " ",
@@ -33,13 +33,20 @@ assert tuple(NUMBER_PIECES) == NUMBERS
 # word or punctuation mark before it (`joined`: "up\n"; a cell then has two words, "(1, 2)" and "(1, 2)\n").
 NEWLINE_PIECES = {"own": "", "joined": r"\n?", "composed": r"\n?"}
 assert tuple(NEWLINE_PIECES) == NEWLINES
+# Where a space before a cell goes (`ModelSettings.spaces`), and with `digits` a space before a digit too (a whole
+# number keeps its own leading space): its own piece (`own`: "Step", " ", "1"), or at the end of the word or
+# punctuation mark before it (`joined`: "Step ", "1"; " at ", "(2, 4)"; ": ", "(2, 5)\n"). The lookahead keeps
+# every other space where it was (a word's own leading space).
+SPACE_PIECES = {"own": {}, "joined": {"whole": r" (?=\()", "digits": r" (?=[(\d])"}}
+assert tuple(SPACE_PIECES) == SPACES
 
 
-def piece_pattern(numbers: str = "whole", newlines: str = "own") -> str:
-    """The pieces' regex. "(" never takes a leading space, so " (1, 1)" is a space and the same cell word as at
-    a line start."""
-    end = NEWLINE_PIECES[newlines]
-    return rf"\(-?\d+, -?\d+\){end}|{NUMBER_PIECES[numbers]}| ?[A-Za-z']+{end}|\n| ?[^\sA-Za-z\d(]{end}|\(|\s"
+def piece_pattern(numbers: str = "whole", newlines: str = "own", spaces: str = "own") -> str:
+    """The pieces' regex. "(" never takes a leading space, so " (1, 1)" is a space (or, with spaces ``joined``,
+    the end of the word before it) and the same cell word as at a line start."""
+    newline, space = NEWLINE_PIECES[newlines], SPACE_PIECES[spaces].get(numbers, "")
+    end = newline if not space else f"(?:{newline[:-1]}|{space})?" if newline else f"(?:{space})?"
+    return rf"\(-?\d+, -?\d+\){newline}|{NUMBER_PIECES[numbers]}| ?[A-Za-z']+{end}|\n| ?[^\sA-Za-z\d(]{end}|\(|\s"
 
 
 UNK, PAD = "<unk>", "<pad>"
@@ -47,34 +54,35 @@ SPECIAL_TOKENS = (PAD, UNK, WORD_LEVEL_FORMAT.bos, WORD_LEVEL_FORMAT.turn_end,
                   WORD_LEVEL_FORMAT.human_prefix, WORD_LEVEL_FORMAT.gpt_prefix)
 
 
-@lru_cache(maxsize=len(NUMBERS) * len(NEWLINES))
-def _pre_tokenizer(numbers: str = "whole", newlines: str = "own") -> pre_tokenizers.PreTokenizer:
-    return pre_tokenizers.Split(Regex(piece_pattern(numbers, newlines)), behavior="isolated")
+@lru_cache(maxsize=len(NUMBERS) * len(NEWLINES) * len(SPACES))
+def _pre_tokenizer(numbers: str = "whole", newlines: str = "own", spaces: str = "own") -> pre_tokenizers.PreTokenizer:
+    return pre_tokenizers.Split(Regex(piece_pattern(numbers, newlines, spaces)), behavior="isolated")
 
 
-def pieces(text: str, numbers: str = "whole", newlines: str = "own") -> list[str]:
+def pieces(text: str, numbers: str = "whole", newlines: str = "own", spaces: str = "own") -> list[str]:
     """The pieces a text splits into (each becomes one token)."""
-    return [piece for piece, _ in _pre_tokenizer(numbers, newlines).pre_tokenize_str(text)]
+    return [piece for piece, _ in _pre_tokenizer(numbers, newlines, spaces).pre_tokenize_str(text)]
 
 
-_PIECE_RES = {(numbers, newlines): re.compile(piece_pattern(numbers, newlines))
-              for numbers in NUMBERS for newlines in NEWLINES}
+_PIECE_RES = {(numbers, newlines, spaces): re.compile(piece_pattern(numbers, newlines, spaces))
+              for numbers in NUMBERS for newlines in NEWLINES for spaces in SPACES}
 # The same regexes by their pattern, as a saved tokenizer's pre-tokenizer names it (`word_level_encoder`).
 _PATTERN_RES = {regex.pattern: regex for regex in _PIECE_RES.values()}
 
 
 # Cached: the instruction turn, the longest, repeats in every conversation.
 @lru_cache(maxsize=1024)
-def piece_census(text: str, numbers: str = "whole", newlines: str = "own") -> tuple[int, frozenset[str]]:
+def piece_census(text: str, numbers: str = "whole", newlines: str = "own", spaces: str = "own"
+                 ) -> tuple[int, frozenset[str]]:
     """How many tokens ``text`` becomes and which distinct pieces it holds, from one pass of the tokenizer's own
     pattern (no Encoding built)."""
-    found = _PIECE_RES[numbers, newlines].findall(text)
+    found = _PIECE_RES[numbers, newlines, spaces].findall(text)
     return len(found), frozenset(found)
 
 
-def piece_set(text: str, numbers: str = "whole", newlines: str = "own") -> frozenset[str]:
+def piece_set(text: str, numbers: str = "whole", newlines: str = "own", spaces: str = "own") -> frozenset[str]:
     """The distinct pieces of ``text`` (the words a word-level model must have trained to read or write it)."""
-    return piece_census(text, numbers, newlines)[1]
+    return piece_census(text, numbers, newlines, spaces)[1]
 
 
 def coverage_text(frame: int, newlines: str = "own") -> str:
@@ -93,10 +101,10 @@ def coverage_text(frame: int, newlines: str = "own") -> str:
 _PLAIN = re.compile(r"[\x20-\x7e\t\n]*")
 
 
-def _all_pieces(texts: Iterable[str], numbers: str, newlines: str) -> set[str]:
+def _all_pieces(texts: Iterable[str], numbers: str, newlines: str, spaces: str) -> set[str]:
     """The distinct pieces of ``texts``: plain texts through Python's regex (the CPU default's 100,000 training
     texts: 0.6 s instead of 7 s through the pre-tokenizer), any other through the tokenizer's own pre-tokenizer."""
-    regex, splitter, found = _PIECE_RES[numbers, newlines], _pre_tokenizer(numbers, newlines), set()
+    regex, splitter, found = _PIECE_RES[numbers, newlines, spaces], _pre_tokenizer(numbers, newlines, spaces), set()
     for text in texts:
         if _PLAIN.fullmatch(text):
             found.update(regex.findall(text))
@@ -106,20 +114,23 @@ def _all_pieces(texts: Iterable[str], numbers: str, newlines: str) -> set[str]:
 
 
 def build_word_tokenizer(texts: Iterable[str], frame: int = 20, numbers: str = "whole",
-                         newlines: str = "own") -> PreTrainedTokenizerFast:
+                         newlines: str = "own", spaces: str = "own") -> PreTrainedTokenizerFast:
     """A deterministic word-level tokenizer whose vocabulary covers ``texts`` and all frame coordinates;
-    ``numbers``: how it cuts a number (`NUMBER_PIECES`); ``newlines``: where a newline goes (`NEWLINE_PIECES`)."""
+    ``numbers``: how it cuts a number (`NUMBER_PIECES`); ``newlines``: where a newline goes (`NEWLINE_PIECES`);
+    ``spaces``: where a space before a cell (or digit) goes (`SPACE_PIECES`)."""
     if numbers not in NUMBERS:
         raise ValueError(f"numbers={numbers!r}; allowed: {', '.join(NUMBERS)}")
     if newlines not in NEWLINES:
         raise ValueError(f"newlines={newlines!r}; allowed: {', '.join(NEWLINES)}")
+    if spaces not in SPACES:
+        raise ValueError(f"spaces={spaces!r}; allowed: {', '.join(SPACES)}")
     digits = "0123456789" if numbers == "digits" else ""   # every number is made of known pieces
-    vocab_pieces = _all_pieces({coverage_text(frame, newlines), digits, *texts}, numbers, newlines)
+    vocab_pieces = _all_pieces({coverage_text(frame, newlines), digits, *texts}, numbers, newlines, spaces)
     vocab = {token: i for i, token in enumerate(SPECIAL_TOKENS)}
     for piece in sorted(vocab_pieces - set(SPECIAL_TOKENS)):
         vocab[piece] = len(vocab)
     core = Tokenizer(models.WordLevel(vocab=vocab, unk_token=UNK))
-    core.pre_tokenizer = _pre_tokenizer(numbers, newlines)
+    core.pre_tokenizer = _pre_tokenizer(numbers, newlines, spaces)
     core.decoder = decoders.Fuse()
     core.add_special_tokens(list(SPECIAL_TOKENS))
     return PreTrainedTokenizerFast(

@@ -118,11 +118,12 @@ class TextSettings:
     # Where the word-level tokenizer puts a newline (ModelSettings.newlines): as `numbers`, the pieces the summary
     # counts; in the data-build hash only when set.
     newlines: str = field(default="own", metadata={"hash_if_set": True})
+    spaces: str = field(default="own", metadata={"hash_if_set": True})   # ModelSettings.spaces, as `newlines`
 
     @classmethod
     def of(cls, direction: str, variant: str, mode: str, seed: int = 0, prompt: str = DEFAULT_PROMPT,
            step_headers: str = "numbered", numbers: str = "whole", plan_form: str = "moves",
-           newlines: str = "own") -> "TextSettings":
+           newlines: str = "own", spaces: str = "own") -> "TextSettings":
         # Direction-free variants (NONE, DFS): both directions share one dataset (and model). Step headers and
         # the Plan's anchors exist only where a Thought does (maps and CoT); the reachable mode has no Plan.
         if BY_NAME[variant].direction_free:
@@ -130,7 +131,7 @@ class TextSettings:
         if mode != "optimal":
             plan_form = "moves"
         return cls(text_direction(direction, variant), variant, mode, seed, prompt, step_headers, numbers, plan_form,
-                   newlines)
+                   newlines, spaces)
 
 
 def world_file(data: DataSettings, split: str) -> ResolvedFile | None:
@@ -264,7 +265,7 @@ def write_dataset(out_dir: str | Path, train: list[World], test: list[World], sp
         for row in rows:
             tokens = 0
             for turn in row["conversations"]:
-                count, found = piece_census(turn["value"], spec.numbers, spec.newlines)
+                count, found = piece_census(turn["value"], spec.numbers, spec.newlines, spec.spaces)
                 tokens += count + 2
                 train_words.update(found)
                 untrained_labels[0] += len(turn.get(UNTRAINED, ()))
@@ -273,7 +274,7 @@ def write_dataset(out_dir: str | Path, train: list[World], test: list[World], sp
 
     def words_of(rows: Iterable[dict]) -> Iterable[dict]:
         for row in rows:
-            test_words.append(frozenset().union(*(piece_set(turn["value"], spec.numbers, spec.newlines)
+            test_words.append(frozenset().union(*(piece_set(turn["value"], spec.numbers, spec.newlines, spec.spaces)
                                                   for turn in row["conversations"])))
             yield row
 

@@ -75,10 +75,10 @@ class PrepareStore(Callback):
 # ---------------------------------------------------------------------------------------------------- hashes
 def job_texts(cfg: DictConfig, job: JobSettings) -> TextSettings:
     """What decides the job's texts besides its worlds (its direction, variant and mode; the model's prompt,
-    step headers, numbers, Plan form and newlines)."""
+    step headers, numbers, Plan form, newlines and spaces)."""
     return TextSettings.of(str(cfg.direction.value), job.variant, str(cfg.mode.value), seed=job.data.seed,
                            prompt=job.model.prompt, step_headers=job.model.step_headers, numbers=job.model.numbers,
-                           plan_form=job.model.plan_form, newlines=job.model.newlines)
+                           plan_form=job.model.plan_form, newlines=job.model.newlines, spaces=job.model.spaces)
 
 
 def step_hashes(job: JobSettings, seed: int, texts: TextSettings) -> dict[str, str]:

@@ -60,14 +60,40 @@ def test_joined_newlines_end_a_line_with_its_last_piece_and_keep_every_text():
     assert "(3, 4)\n" not in TOKENIZER.get_vocab()
 
 
+def test_joined_spaces_end_the_word_before_a_cell_or_digit_and_keep_every_text():
+    text = "Grid is from (1, 2) to (2, 5). Goal: (2, 5)\nThe wall is at (1, 1), (2, 2), and (3, 3).\nStep 12:\nup"
+    assert pieces(text, "digits", "composed", "joined") == [
+        "Grid", " is", " from ", "(1, 2)", " to ", "(2, 5)", ".", " Goal", ": ", "(2, 5)\n", "The", " wall", " is",
+        " at ", "(1, 1)", ", ", "(2, 2)", ",", " and ", "(3, 3)", ".\n", "Step ", "1", "2", ":\n", "up"]
+    # A whole number keeps its own leading space; any other space stays where it was.
+    assert pieces("Step 12: at (1, 1)  (2, 2) x", "whole", "own", "joined") == [
+        "Step", " 12", ":", " at ", "(1, 1)", " ", " ", "(2, 2)", " x"]
+    tokenizer = build_word_tokenizer(TEXTS, frame=8, numbers="digits", newlines="composed", spaces="joined")
+    joined = own = 0
+    for text in TEXTS:
+        ids = tokenizer.encode(text, add_special_tokens=False)
+        assert tokenizer.unk_token_id not in ids and tokenizer.decode(ids) == text
+        assert len(ids) == piece_census(text, "digits", "composed", "joined")[0]
+        joined, own = joined + len(ids), own + piece_census(text, "digits", "composed")[0]
+    assert joined < 0.95 * own   # the same texts in fewer tokens
+    ids = tokenizer.encode("Step 98:\n", add_special_tokens=False)   # a step number no text holds
+    assert tokenizer.unk_token_id not in ids and tokenizer.decode(ids) == "Step 98:\n"
+    # The default cut is unchanged by the switch's existence.
+    assert build_word_tokenizer(TEXTS, frame=8, spaces="own").get_vocab() == TOKENIZER.get_vocab()
+
+
 def test_the_vocabulary_is_the_pre_tokenizers_pieces_of_any_text():
     # Plain texts take Python's regex, others the tokenizer's own pre-tokenizer: both give its pieces.
-    texts = [*TEXTS[:40], "h\u00e9llo (1, 2)\u00a0x\x1c y\u0663 12", "tab\there\r\nz", "   ", ""]
-    for numbers, newlines in (("whole", "own"), ("digits", "composed")):
-        vocab = build_word_tokenizer(texts, frame=8, numbers=numbers, newlines=newlines).get_vocab()
+    texts = [*TEXTS[:40], "h\u00e9llo (1, 2)\u00a0x\x1c y\u0663 12", "tab\there\r\nz", "   ", "",
+             "at (1, 2) at\u00a0(1, 2) Step 3 Step\u00a04: \u0663 (2, 2)\n"]
+    for numbers, newlines, spaces in (("whole", "own", "own"), ("digits", "composed", "own"),
+                                      ("whole", "own", "joined"), ("digits", "composed", "joined")):
+        tokenizer = build_word_tokenizer(texts, frame=8, numbers=numbers, newlines=newlines, spaces=spaces)
         every = [coverage_text(8, newlines), "0123456789" if numbers == "digits" else "", *texts]
-        expected = {piece for text in every for piece in pieces(text, numbers, newlines)}
-        assert set(vocab) == set(SPECIAL_TOKENS) | expected
+        expected = {piece for text in every for piece in pieces(text, numbers, newlines, spaces)}
+        assert set(tokenizer.get_vocab()) == set(SPECIAL_TOKENS) | expected
+        # Python's regex (plain texts) and the tokenizer's own agree on every text.
+        assert word_level_encoder(tokenizer)(texts) == [tokenizer.encode(t, add_special_tokens=False) for t in texts]
 
 
 def test_every_text_round_trips_without_unknown_tokens():

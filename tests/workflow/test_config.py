@@ -141,6 +141,8 @@ def test_marking_without_all_moves_is_refused_naming_the_values():
     ("model=hf model.path=x model.numbers=digits", "model.numbers='digits' is not allowed; expected whole for a pretrained"),
     ("model.newlines=crlf", "model.newlines='crlf' is not allowed; expected one of own, joined"),
     ("model=hf model.path=x model.newlines=joined", "model.newlines='joined' is not allowed; expected own for a pretrained"),
+    ("model.spaces=composed", "model.spaces='composed' is not allowed; expected one of own, joined"),
+    ("model=hf model.path=x model.spaces=joined", "model.spaces='joined' is not allowed; expected own for a pretrained"),
     ("eval.rules=strict", "eval.rules='strict' is not allowed; expected one of project, paper"),
     ("train.long_conversations=cut", "train.long_conversations='cut' is not allowed; expected one of drop, truncate"),
     ("train.position_stretch=0.5", "train.position_stretch=0.5 is not allowed; expected a number >= 1"),
@@ -350,6 +352,10 @@ def test_settings_added_since_keep_the_step_hashes_of_finished_runs(monkeypatch)
     assert hashes("train.labelled_last_layer=false", toy=False)["data-build"] == new["data-build"]
     assert (hashes("train.labelled_logits=false", toy=False)
             == hashes("train.labelled_logits=false", "train.labelled_last_layer=false", toy=False))
+    # Spaces joined cut other tokens: a new data-build (its token counts) and finetune; the other cut's runs stay
+    # reusable.
+    joined, own = hashes("model.spaces=joined", toy=False), hashes("model.spaces=own", toy=False)
+    assert joined["data-build"] != own["data-build"] and joined["finetune"] != own["finetune"]
 
 
 @pytest.mark.parametrize("launcher", ["local2", "slurm", "local_submitit"])
