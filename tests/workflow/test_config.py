@@ -220,7 +220,8 @@ def test_the_extrapolation_study_runs_each_lever_alone_with_two_seeds_on_the_def
                        "linear_cells": ["model.coordinate_init"], "weight_decay": ["train.weight_decay"],
                        "wide_mlp": ["model.intermediate_size"], "edge_labels": ["data.mask_edge_labels"],
                        "axes": ["model.prompt"], "plain_positions": ["train.position_stretch"],
-                       "moves_plan": ["model.plan_form"], "joined": ["model.newlines"], "own": ["model.newlines"]}
+                       "moves_plan": ["model.plan_form"], "joined": ["model.newlines"], "own": ["model.newlines"],
+                       "own_spaces": ["model.spaces"]}
 
 
 def test_cpu_study_is_the_optimal_half_of_table_1_with_two_seeds_where_asked():
@@ -309,7 +310,7 @@ def test_settings_added_since_keep_the_step_hashes_of_finished_runs(monkeypatch)
     old_default = ("data.train_deep=0", "train.optimizer=adamw", "train.bf16_when_faster=false", "model.numbers=whole",
                    "model.attn_implementation=sdpa", "train.position_stretch=1", "model.plan_form=moves",
                    "model.newlines=own", "train.batch_threads=1", "train.labelled_logits=false",
-                   "train.muon_bf16=false")
+                   "train.muon_bf16=false", "model.spaces=own")
     assert hashes("eval.n_valid=0", *old_default, toy=False) == {
         "data-build": "9084abe767f5f3cf", "finetune": "9f74feb50b9e71d8", "eval": "7a5f1b9983e9f635"}
     assert hashes(*old_default, toy=False)["eval"] != "7a5f1b9983e9f635"
@@ -352,10 +353,10 @@ def test_settings_added_since_keep_the_step_hashes_of_finished_runs(monkeypatch)
     assert hashes("train.labelled_last_layer=false", toy=False)["data-build"] == new["data-build"]
     assert (hashes("train.labelled_logits=false", toy=False)
             == hashes("train.labelled_logits=false", "train.labelled_last_layer=false", toy=False))
-    # Spaces joined cut other tokens: a new data-build (its token counts) and finetune; the other cut's runs stay
-    # reusable.
+    # Spaces joined (the CPU default since) cut other tokens: a new data-build (its token counts) and finetune; the
+    # earlier default's (`own`) runs stay reusable.
     joined, own = hashes("model.spaces=joined", toy=False), hashes("model.spaces=own", toy=False)
-    assert joined["data-build"] != own["data-build"] and joined["finetune"] != own["finetune"]
+    assert joined == new and joined["data-build"] != own["data-build"] and joined["finetune"] != own["finetune"]
 
 
 @pytest.mark.parametrize("launcher", ["local2", "slurm", "local_submitit"])
