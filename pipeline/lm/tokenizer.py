@@ -37,14 +37,21 @@ assert tuple(NEWLINE_PIECES) == NEWLINES
 # number keeps its own leading space): its own piece (`own`: "Step", " ", "1"), or at the end of the word or
 # punctuation mark before it (`joined`: "Step ", "1"; " at ", "(2, 4)"; ": ", "(2, 5)\n"). The lookahead keeps
 # every other space where it was (a word's own leading space).
-SPACE_PIECES = {"own": {}, "joined": {"whole": r" (?=\()", "digits": r" (?=[(\d])"}}
+# `phrases`: every run of words, spaces and marks up to a cell, a digit, a line end or a sentence's full stop is one
+# piece ("Grid is from ", " to ", "There is no pit.", " The wall is at ", ", and ", "Thought:\n"): the fixed
+# phrases of the format, each one token, and the sentences between them still apart, so any pits-and-walls line is
+# made of trained pieces.
+SPACE_PIECES = {"own": {}, "joined": {"whole": r" (?=\()", "digits": r" (?=[(\d])"}, "phrases": {}}
 assert tuple(SPACE_PIECES) == SPACES
+PHRASE = r"(?:[^\d(\n.]+\.?|\.)"
 
 
 def piece_pattern(numbers: str = "whole", newlines: str = "own", spaces: str = "own") -> str:
     """The pieces' regex. "(" never takes a leading space, so " (1, 1)" is a space (or, with spaces ``joined``,
     the end of the word before it) and the same cell word as at a line start."""
     newline, space = NEWLINE_PIECES[newlines], SPACE_PIECES[spaces].get(numbers, "")
+    if spaces == "phrases":
+        return rf"\(-?\d+, -?\d+\){newline}|{NUMBER_PIECES[numbers]}|{PHRASE}{newline}|\n|\("
     end = newline if not space else f"(?:{newline[:-1]}|{space})?" if newline else f"(?:{space})?"
     return rf"\(-?\d+, -?\d+\){newline}|{NUMBER_PIECES[numbers]}| ?[A-Za-z']+{end}|\n| ?[^\sA-Za-z\d(]{end}|\(|\s"
 

@@ -82,12 +82,37 @@ def test_joined_spaces_end_the_word_before_a_cell_or_digit_and_keep_every_text()
     assert build_word_tokenizer(TEXTS, frame=8, spaces="own").get_vocab() == TOKENIZER.get_vocab()
 
 
+def test_phrases_make_each_run_of_words_and_marks_one_piece_and_keep_every_text():
+    text = ("Grid is from (1, 2) to (2, 5). Goal: (2, 5)\nThere is no pit. There is no wall.\n"
+            "The wall is at (1, 1), (2, 2), and (3, 3).\nStep 12:\nup")
+    assert pieces(text, "digits", "composed", "phrases") == [
+        "Grid is from ", "(1, 2)", " to ", "(2, 5)", ".", " Goal: ", "(2, 5)\n", "There is no pit.",
+        " There is no wall.\n", "The wall is at ", "(1, 1)", ", ", "(2, 2)", ", and ", "(3, 3)", ".\n", "Step ", "1",
+        "2", ":\n", "up"]
+    # A full stop ends its sentence's piece, a line end its line's; a newline of its own, a number whole.
+    assert pieces("Step 12: at (1, 1)  (2, 2) x. y\n(z", "whole", "own", "phrases") == [
+        "Step ", "12", ": at ", "(1, 1)", "  ", "(2, 2)", " x.", " y", "\n", "(", "z"]
+    tokenizer = build_word_tokenizer(TEXTS, frame=8, numbers="digits", newlines="composed", spaces="phrases")
+    phrases = joined = 0
+    for text in TEXTS:
+        ids = tokenizer.encode(text, add_special_tokens=False)
+        assert tokenizer.unk_token_id not in ids and tokenizer.decode(ids) == text
+        assert len(ids) == piece_census(text, "digits", "composed", "phrases")[0]
+        phrases, joined = phrases + len(ids), joined + piece_census(text, "digits", "composed", "joined")[0]
+    assert phrases < 0.95 * joined   # the same texts in fewer tokens again
+    # A line no training text holds, made of trained pieces: a world without pits or walls, a step number.
+    ids = tokenizer.encode("There is no pit. There is no wall.\nStep 98:\n", add_special_tokens=False)
+    assert tokenizer.unk_token_id not in ids
+    assert tokenizer.decode(ids) == "There is no pit. There is no wall.\nStep 98:\n"
+
+
 def test_the_vocabulary_is_the_pre_tokenizers_pieces_of_any_text():
     # Plain texts take Python's regex, others the tokenizer's own pre-tokenizer: both give its pieces.
     texts = [*TEXTS[:40], "h\u00e9llo (1, 2)\u00a0x\x1c y\u0663 12", "tab\there\r\nz", "   ", "",
              "at (1, 2) at\u00a0(1, 2) Step 3 Step\u00a04: \u0663 (2, 2)\n"]
     for numbers, newlines, spaces in (("whole", "own", "own"), ("digits", "composed", "own"),
-                                      ("whole", "own", "joined"), ("digits", "composed", "joined")):
+                                      ("whole", "own", "joined"), ("digits", "composed", "joined"),
+                                      ("whole", "own", "phrases"), ("digits", "composed", "phrases")):
         tokenizer = build_word_tokenizer(texts, frame=8, numbers=numbers, newlines=newlines, spaces=spaces)
         every = [coverage_text(8, newlines), "0123456789" if numbers == "digits" else "", *texts]
         expected = {piece for text in every for piece in pieces(text, numbers, newlines, spaces)}

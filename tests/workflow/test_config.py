@@ -141,7 +141,7 @@ def test_marking_without_all_moves_is_refused_naming_the_values():
     ("model=hf model.path=x model.numbers=digits", "model.numbers='digits' is not allowed; expected whole for a pretrained"),
     ("model.newlines=crlf", "model.newlines='crlf' is not allowed; expected one of own, joined"),
     ("model=hf model.path=x model.newlines=joined", "model.newlines='joined' is not allowed; expected own for a pretrained"),
-    ("model.spaces=composed", "model.spaces='composed' is not allowed; expected one of own, joined"),
+    ("model.spaces=composed", "model.spaces='composed' is not allowed; expected one of own, joined, phrases"),
     ("model=hf model.path=x model.spaces=joined", "model.spaces='joined' is not allowed; expected own for a pretrained"),
     ("eval.rules=strict", "eval.rules='strict' is not allowed; expected one of project, paper"),
     ("train.long_conversations=cut", "train.long_conversations='cut' is not allowed; expected one of drop, truncate"),
