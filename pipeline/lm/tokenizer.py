@@ -92,14 +92,15 @@ def piece_set(text: str, numbers: str = "whole", newlines: str = "own", spaces: 
     return piece_census(text, numbers, newlines, spaces)[1]
 
 
-def coverage_text(frame: int, newlines: str = "own") -> str:
+def coverage_text(frame: int, newlines: str = "own", spaces: str = "own") -> str:
     """Every cell (with newlines joined, also ending a line) and every number a coordinate can take in a frame
     (numbers with and without a space); with newlines `composed`, also a newline alone (the row every joined
-    word adds to its word's: `pipeline.lm.models.ComposedRows`)."""
+    word adds to its word's: `pipeline.lm.models.ComposedRows`), after a space, or with spaces `phrases` (where a
+    space takes the newline after it) after a number."""
     numbers = range(-1, frame + 1)
     forms = ("", "\n") if newlines != "own" else ("",)
     cells = "".join(f"({x}, {y}){end}" for x in numbers for y in numbers for end in forms)
-    newline = " \n" if newlines == "composed" else ""
+    newline = ("\n" if spaces == "phrases" else " \n") if newlines == "composed" else ""
     return cells + " " + " ".join(str(n) for n in numbers) + " " + ",".join(str(n) for n in numbers) + newline
 
 
@@ -132,7 +133,7 @@ def build_word_tokenizer(texts: Iterable[str], frame: int = 20, numbers: str = "
     if spaces not in SPACES:
         raise ValueError(f"spaces={spaces!r}; allowed: {', '.join(SPACES)}")
     digits = "0123456789" if numbers == "digits" else ""   # every number is made of known pieces
-    vocab_pieces = _all_pieces({coverage_text(frame, newlines), digits, *texts}, numbers, newlines, spaces)
+    vocab_pieces = _all_pieces({coverage_text(frame, newlines, spaces), digits, *texts}, numbers, newlines, spaces)
     vocab = {token: i for i, token in enumerate(SPECIAL_TOKENS)}
     for piece in sorted(vocab_pieces - set(SPECIAL_TOKENS)):
         vocab[piece] = len(vocab)

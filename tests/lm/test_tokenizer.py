@@ -100,6 +100,7 @@ def test_phrases_make_each_run_of_words_and_marks_one_piece_and_keep_every_text(
         assert len(ids) == piece_census(text, "digits", "composed", "phrases")[0]
         phrases, joined = phrases + len(ids), joined + piece_census(text, "digits", "composed", "joined")[0]
     assert phrases < 0.95 * joined   # the same texts in fewer tokens again
+    assert "\n" in tokenizer.get_vocab()   # the newline row a composed word adds to its word's, as with any cut
     # A line no training text holds, made of trained pieces: a world without pits or walls, a step number.
     ids = tokenizer.encode("There is no pit. There is no wall.\nStep 98:\n", add_special_tokens=False)
     assert tokenizer.unk_token_id not in ids
@@ -114,7 +115,7 @@ def test_the_vocabulary_is_the_pre_tokenizers_pieces_of_any_text():
                                       ("whole", "own", "joined"), ("digits", "composed", "joined"),
                                       ("whole", "own", "phrases"), ("digits", "composed", "phrases")):
         tokenizer = build_word_tokenizer(texts, frame=8, numbers=numbers, newlines=newlines, spaces=spaces)
-        every = [coverage_text(8, newlines), "0123456789" if numbers == "digits" else "", *texts]
+        every = [coverage_text(8, newlines, spaces), "0123456789" if numbers == "digits" else "", *texts]
         expected = {piece for text in every for piece in pieces(text, numbers, newlines, spaces)}
         assert set(tokenizer.get_vocab()) == set(SPECIAL_TOKENS) | expected
         # Python's regex (plain texts) and the tokenizer's own agree on every text.
