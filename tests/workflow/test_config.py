@@ -221,7 +221,7 @@ def test_the_extrapolation_study_runs_each_lever_alone_with_two_seeds_on_the_def
                        "wide_mlp": ["model.intermediate_size"], "edge_labels": ["data.mask_edge_labels"],
                        "axes": ["model.prompt"], "plain_positions": ["train.position_stretch"],
                        "moves_plan": ["model.plan_form"], "joined": ["model.newlines"], "own": ["model.newlines"],
-                       "own_spaces": ["model.spaces"]}
+                       "own_spaces": ["model.spaces"], "joined_spaces": ["model.spaces"]}
 
 
 def test_cpu_study_is_the_optimal_half_of_table_1_with_two_seeds_where_asked():
@@ -356,7 +356,10 @@ def test_settings_added_since_keep_the_step_hashes_of_finished_runs(monkeypatch)
     # Spaces joined (the CPU default since) cut other tokens: a new data-build (its token counts) and finetune; the
     # earlier default's (`own`) runs stay reusable.
     joined, own = hashes("model.spaces=joined", toy=False), hashes("model.spaces=own", toy=False)
-    assert joined == new and joined["data-build"] != own["data-build"] and joined["finetune"] != own["finetune"]
+    assert joined["data-build"] != own["data-build"] and joined["finetune"] != own["finetune"]
+    # Phrases (the CPU default since) cut other tokens again: new steps; spaces joined's runs stay reusable.
+    phrases = hashes("model.spaces=phrases", toy=False)
+    assert phrases == new and phrases["data-build"] != joined["data-build"] and phrases["finetune"] != joined["finetune"]
 
 
 @pytest.mark.parametrize("launcher", ["local2", "slurm", "local_submitit"])
