@@ -4,7 +4,9 @@ A coordinate ``(x, y)`` is one piece (one word of this language: the model match
 obstacle lists by token identity instead of assembling five pieces, and sequences are about half as long);
 other pieces are numbers (or their digits: `NUMBER_PIECES`), words and punctuation, each optionally with one
 leading space, plus single whitespace characters. With newlines ``joined`` (`NEWLINE_PIECES`) a cell, word or
-punctuation mark that ends a line carries its newline: the same text in about two thirds of the tokens.
+punctuation mark that ends a line carries its newline: the same text in about two thirds of the tokens. With
+spaces ``phrases`` (`SPACE_PIECES`) each run of words, spaces and marks up to a cell, a digit, a line end or a full
+stop is one piece instead.
 Decoding concatenates pieces, so ``decode(encode(text)) == text`` for any text in the vocabulary. The vocabulary
 is the sorted set of pieces of the training texts plus every coordinate the frame can produce (``-1`` ..
 ``frame`` on both axes, with newlines joined also ending a line), so extrapolated test worlds never meet an
