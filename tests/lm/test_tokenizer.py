@@ -60,6 +60,19 @@ def test_joined_newlines_end_a_line_with_its_last_piece_and_keep_every_text():
     assert "(3, 4)\n" not in TOKENIZER.get_vocab()
 
 
+def _round_trips(spaces: str, against: str):
+    """The default's cut with ``spaces``, built on TEXTS: each text decodes back to itself, with no unknown token, in
+    as many tokens as its census counts. Returns the tokenizer, the texts' tokens, and theirs with ``against``."""
+    tokenizer = build_word_tokenizer(TEXTS, frame=8, numbers="digits", newlines="composed", spaces=spaces)
+    tokens = theirs = 0
+    for text in TEXTS:
+        ids = tokenizer.encode(text, add_special_tokens=False)
+        assert tokenizer.unk_token_id not in ids and tokenizer.decode(ids) == text
+        assert len(ids) == piece_census(text, "digits", "composed", spaces)[0]
+        tokens, theirs = tokens + len(ids), theirs + piece_census(text, "digits", "composed", against)[0]
+    return tokenizer, tokens, theirs
+
+
 def test_joined_spaces_end_the_word_before_a_cell_or_digit_and_keep_every_text():
     text = "Grid is from (1, 2) to (2, 5). Goal: (2, 5)\nThe wall is at (1, 1), (2, 2), and (3, 3).\nStep 12:\nup"
     assert pieces(text, "digits", "composed", "joined") == [
@@ -68,13 +81,7 @@ def test_joined_spaces_end_the_word_before_a_cell_or_digit_and_keep_every_text()
     # A whole number keeps its own leading space; any other space stays where it was.
     assert pieces("Step 12: at (1, 1)  (2, 2) x", "whole", "own", "joined") == [
         "Step", " 12", ":", " at ", "(1, 1)", " ", " ", "(2, 2)", " x"]
-    tokenizer = build_word_tokenizer(TEXTS, frame=8, numbers="digits", newlines="composed", spaces="joined")
-    joined = own = 0
-    for text in TEXTS:
-        ids = tokenizer.encode(text, add_special_tokens=False)
-        assert tokenizer.unk_token_id not in ids and tokenizer.decode(ids) == text
-        assert len(ids) == piece_census(text, "digits", "composed", "joined")[0]
-        joined, own = joined + len(ids), own + piece_census(text, "digits", "composed")[0]
+    tokenizer, joined, own = _round_trips(spaces="joined", against="own")
     assert joined < 0.95 * own   # the same texts in fewer tokens
     ids = tokenizer.encode("Step 98:\n", add_special_tokens=False)   # a step number no text holds
     assert tokenizer.unk_token_id not in ids and tokenizer.decode(ids) == "Step 98:\n"
@@ -92,13 +99,7 @@ def test_phrases_make_each_run_of_words_and_marks_one_piece_and_keep_every_text(
     # A full stop ends its sentence's piece, a line end its line's; a newline of its own, a number whole.
     assert pieces("Step 12: at (1, 1)  (2, 2) x. y\n(z", "whole", "own", "phrases") == [
         "Step ", "12", ": at ", "(1, 1)", "  ", "(2, 2)", " x.", " y", "\n", "(", "z"]
-    tokenizer = build_word_tokenizer(TEXTS, frame=8, numbers="digits", newlines="composed", spaces="phrases")
-    phrases = joined = 0
-    for text in TEXTS:
-        ids = tokenizer.encode(text, add_special_tokens=False)
-        assert tokenizer.unk_token_id not in ids and tokenizer.decode(ids) == text
-        assert len(ids) == piece_census(text, "digits", "composed", "phrases")[0]
-        phrases, joined = phrases + len(ids), joined + piece_census(text, "digits", "composed", "joined")[0]
+    tokenizer, phrases, joined = _round_trips(spaces="phrases", against="joined")
     assert phrases < 0.95 * joined   # the same texts in fewer tokens again
     assert "\n" in tokenizer.get_vocab()   # the newline row a composed word adds to its word's, as with any cut
     # A line no training text holds, made of trained pieces: a world without pits or walls, a step number.
