@@ -50,7 +50,8 @@ PHRASE = r"(?:[^\d(\n.]+\.?|\.)"
 
 def piece_pattern(numbers: str = "whole", newlines: str = "own", spaces: str = "own") -> str:
     """The pieces' regex. "(" never takes a leading space, so " (1, 1)" is a space (or, with spaces ``joined``,
-    the end of the word before it) and the same cell word as at a line start."""
+    the end of the word before it; with ``phrases``, the end of the phrase before it) and the same cell word as at a
+    line start."""
     newline, space = NEWLINE_PIECES[newlines], SPACE_PIECES[spaces].get(numbers, "")
     if spaces == "phrases":
         return rf"\(-?\d+, -?\d+\){newline}|{NUMBER_PIECES[numbers]}|{PHRASE}{newline}|\n|\("

@@ -353,7 +353,7 @@ def test_settings_added_since_keep_the_step_hashes_of_finished_runs(monkeypatch)
     assert hashes("train.labelled_last_layer=false", toy=False)["data-build"] == new["data-build"]
     assert (hashes("train.labelled_logits=false", toy=False)
             == hashes("train.labelled_logits=false", "train.labelled_last_layer=false", toy=False))
-    # Spaces joined (the CPU default since) cut other tokens: a new data-build (its token counts) and finetune; the
+    # Spaces joined (the CPU default then) cut other tokens: a new data-build (its token counts) and finetune; the
     # earlier default's (`own`) runs stay reusable.
     joined, own = hashes("model.spaces=joined", toy=False), hashes("model.spaces=own", toy=False)
     assert joined["data-build"] != own["data-build"] and joined["finetune"] != own["finetune"]
