@@ -341,7 +341,8 @@ def main() -> None:
     flops_per_real_token = training_flops(probe, lengths) / sum(lengths)
     scope = train_cfg.torch_compile.value
     print(device_line(args.threads))
-    print(f"data ({args.data}, prompt {prompt}, newlines {model_cfg.newlines}): {len(conversations)} conversations, "
+    print(f"data ({args.data}, prompt {prompt}, newlines {model_cfg.newlines}, spaces {model_cfg.spaces}): "
+          f"{len(conversations)} conversations, "
           f"tokens min {min(lengths)} "
           f"median {statistics.median(lengths):.0f} mean {statistics.fmean(lengths):.0f} max {max(lengths)}; vocab "
           f"{len(tokenizer)}")

@@ -16,17 +16,17 @@ ROOT = Path(__file__).resolve().parents[2]
 
 @pytest.mark.slow
 def test_bench_train_runs_the_default_against_the_other_newline_cut(tmp_path):
-    """The default model yaml (newlines composed) against `own`, each run built with its own cut, through the CPU
-    default's train yaml (compiled layers), in two rounds (A B, then B A): every run prints its rates each round,
-    and the ratio line gives each round's ratio. The bf16 peak is measured only where bf16 runs in hardware
-    (emulated, it is no peak and takes about 18 s a measurement)."""
+    """The default model yaml (newlines composed, spaces phrases) against `own`, each run built with its own cut,
+    through the CPU default's train yaml (compiled layers), in two rounds (A B, then B A): every run prints its
+    rates each round, and the ratio line gives each round's ratio. The bf16 peak is measured only where bf16 runs
+    in hardware (emulated, it is no peak and takes about 18 s a measurement)."""
     result = subprocess.run(
         [sys.executable, str(ROOT / "benchmarks" / "bench_train.py"), "--only", "default", "--only", "other-newlines",
          "--conversations", "16", "--steps", "3", "--skip", "1", "--threads", "1",
          "--rounds", "2", "--model", str(ROOT / "conf" / "model" / "tiny.yaml")],
         capture_output=True, text=True, timeout=300, cwd=tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
-    assert "newlines composed)" in result.stdout
+    assert "newlines composed, spaces phrases)" in result.stdout
     lines = result.stdout.splitlines()
     runs = [line.split(": ")[0] for line in lines if "real tokens/s over all steps" in line]
     default = next(run for run in runs if "newlines" not in run).removesuffix(" (round 1)")
